@@ -1,0 +1,81 @@
+"""Host-side input checks.
+
+Every public entry point validates its inputs here, before anything is traced, so that bad input gets a
+`ValueError` naming the argument and the expected shape or range instead of an error from inside XLA.
+Arrays that are tracers (inside a user's `jit`) are only checked for shape and dtype kind.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+
+
+def is_tracer(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _shape_str(shape: Sequence[int | str | None]) -> str:
+    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def check_array(
+    x,
+    name: str,
+    shape: Sequence[int | str | None],
+    *,
+    finite: bool = True,
+    integer: bool = False,
+    dims: dict[str, int] | None = None,
+):
+    """Checks `x` against a shape spec and returns it unchanged.
+
+    **Arguments:**
+
+    - `x`: array-like (NumPy, JAX, or a tracer).
+    - `name`: argument name used in the error message.
+    - `shape`: expected shape; entries are ints (exact), `None` (any size), or strings naming a size that
+      must agree with other arrays sharing `dims`.
+    - `finite`: also reject NaN/inf (skipped for tracers).
+    - `integer`: require an integer dtype.
+    - `dims`: dictionary of named sizes, filled in and checked across calls.
+
+    **Returns:** `x`.
+    """
+    if not hasattr(x, "shape"):
+        x = np.asarray(x)
+    xs = tuple(x.shape)
+    if len(xs) != len(shape):
+        raise ValueError(f"`{name}` must have shape {_shape_str(shape)}, got shape {xs}.")
+    dims = {} if dims is None else dims
+    for got, want in zip(xs, shape):
+        if want is None:
+            continue
+        if isinstance(want, str):
+            if want in dims and dims[want] != got:
+                raise ValueError(
+                    f"`{name}` must have shape {_shape_str(shape)} with {want}={dims[want]}, got shape {xs}."
+                )
+            dims[want] = got
+        elif got != want:
+            raise ValueError(f"`{name}` must have shape {_shape_str(shape)}, got shape {xs}.")
+    kind = np.dtype(x.dtype).kind
+    if integer and kind not in "iu":
+        raise ValueError(f"`{name}` must have an integer dtype, got {x.dtype}.")
+    if not integer and kind not in "fiub":
+        raise ValueError(f"`{name}` must be a real numeric array, got dtype {x.dtype}.")
+    if finite and not integer and not is_tracer(x):
+        if not bool(np.all(np.isfinite(np.asarray(x)))):
+            raise ValueError(f"`{name}` contains NaN or infinite values.")
+    return x
+
+
+def check_range(x, name: str, lo: float, hi: float):
+    """Rejects concrete values outside `[lo, hi]` (tracers pass through)."""
+    if not is_tracer(x):
+        a = np.asarray(x)
+        if a.size and (a.min() < lo or a.max() > hi):
+            raise ValueError(f"`{name}` must lie in [{lo}, {hi}], got values in [{a.min()}, {a.max()}].")
+    return x

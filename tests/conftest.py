@@ -1,0 +1,29 @@
+"""Shared test configuration.
+
+x64 is switched on for the whole suite: solver and finite-difference gradient tests need float64, and
+library code must behave identically under both precisions (it never hard-codes a dtype).
+"""
+
+import os
+
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+import jax  # noqa: E402
+import jax.random as jr  # noqa: E402
+import pytest  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture
+def getkey():
+    """Returns a function that hands out fresh, deterministic PRNG keys."""
+    key = jr.PRNGKey(0)
+
+    def _getkey():
+        nonlocal key
+        key, sub = jr.split(key)
+        return sub
+
+    return _getkey
