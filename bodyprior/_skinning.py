@@ -1,0 +1,177 @@
+"""Skinning: linear blend skinning (LBS) with sparse top-k weights, and dual-quaternion skinning (DQS).
+
+Skinning weights are stored sparsely: each vertex has `K` (joint index, weight) pairs, `K` small
+(typically 4–8), instead of a dense `(V, J)` matrix. Transforms are the `(J, 4, 4)` skinning transforms
+`A_j` of [`bodyprior.forward_kinematics`][]. Kernels work on one mesh; `jax.vmap` over bodies.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._rotations import _as_float, matrix_to_quaternion, quaternion_multiply, quaternion_to_matrix
+from ._validate import check_array, is_tracer
+
+__all__ = [
+    "dense_weights_to_topk",
+    "dqs",
+    "lbs",
+    "transform_to_dual_quaternion",
+]
+
+
+def _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms):
+    dims: dict[str, int] = {}
+    check_array(rest_vertices, "rest_vertices", ("V", 3), finite=False, dims=dims)
+    check_array(weight_indices, "weight_indices", ("V", "K"), integer=True, dims=dims)
+    check_array(weights, "weights", ("V", "K"), finite=False, dims=dims)
+    check_array(transforms, "transforms", ("J", 4, 4), finite=False, dims=dims)
+    if not is_tracer(weight_indices):
+        idx = np.asarray(weight_indices)
+        if idx.size and (idx.min() < 0 or idx.max() >= dims["J"]):
+            raise ValueError(
+                f"`weight_indices` must lie in [0, {dims['J'] - 1}] (J = {dims['J']} transforms), got "
+                f"values in [{idx.min()}, {idx.max()}]."
+            )
+    x = _as_float(rest_vertices)
+    w = _as_float(weights)
+    T = _as_float(transforms)
+    dtype = jnp.result_type(x, w, T)
+    return x.astype(dtype), jnp.asarray(weight_indices), w.astype(dtype), T.astype(dtype)
+
+
+def lbs(
+    rest_vertices: Float[ArrayLike, "V 3"],
+    weight_indices: Int[ArrayLike, "V K"],
+    weights: Float[ArrayLike, "V K"],
+    transforms: Float[ArrayLike, "J 4 4"],
+) -> Float[Array, "V 3"]:
+    r"""Linear blend skinning with sparse top-k weights.
+
+    $v'_i = \left(\sum_k w_{ik} A_{j_{ik}}\right) [v_i; 1]$: the `K` gathered `3 × 4` transforms of each
+    vertex are blended first, then applied. Weights are used as given (normally each row sums to 1;
+    a row summing to 1 makes the result invariant to a global rigid transform).
+
+    **Arguments:**
+
+    - `rest_vertices`: rest-pose vertices, shape `(V, 3)`, metres.
+    - `weight_indices`: joint index per (vertex, slot), integer shape `(V, K)`, in `[0, J)`.
+    - `weights`: weight per (vertex, slot), shape `(V, K)`.
+    - `transforms`: skinning transforms `A_j`, shape `(J, 4, 4)` (only the top `3 × 4` is used).
+
+    **Returns:** posed vertices, shape `(V, 3)`, metres.
+
+    **Raises:** `ValueError` for mismatched shapes, a non-integer `weight_indices`, or (for concrete
+    arrays) indices outside `[0, J)`.
+    """
+    x, idx, w, T = _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms)
+    M = jnp.einsum("vk,vkab->vab", w, T[idx, :3, :])  # (V, 3, 4)
+    return jnp.einsum("vab,vb->va", M[:, :, :3], x) + M[:, :, 3]
+
+
+def dense_weights_to_topk(
+    weights: Float[ArrayLike, "V J"], k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Converts dense skinning weights to sparse top-`k` form (host-side, NumPy).
+
+    Keeps the `k` largest weights of each vertex, sorted in decreasing order (so slot 0 is the
+    dominant joint), and renormalises them to sum to 1.
+
+    **Arguments:**
+
+    - `weights`: dense non-negative weights, shape `(V, J)`.
+    - `k`: number of joints kept per vertex, `1 <= k <= J`.
+
+    **Returns:** a tuple `(indices, weights)` of NumPy arrays, shapes `(V, k)` (`int32`) and `(V, k)`
+    (same float dtype as the input, or float64).
+
+    **Raises:** `ValueError` for a bad shape, bad `k`, negative weights, or a vertex whose kept
+    weights sum to zero.
+    """
+    W = np.asarray(weights)
+    if W.ndim != 2:
+        raise ValueError(f"`weights` must have shape (V, J), got shape {W.shape}.")
+    if not np.issubdtype(W.dtype, np.floating):
+        W = W.astype(np.float64)
+    V, J = W.shape
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= J:
+        raise ValueError(f"`k` must be an int in [1, {J}], got {k!r}.")
+    if not np.all(np.isfinite(W)):
+        raise ValueError("`weights` contains NaN or infinite values.")
+    if np.any(W < 0):
+        raise ValueError(f"`weights` must be non-negative, got minimum {W.min()}.")
+    order = np.argsort(-W, axis=1, kind="stable")[:, :k]
+    top = np.take_along_axis(W, order, axis=1)
+    total = top.sum(axis=1, keepdims=True)
+    if np.any(total <= 0):
+        bad = int(np.flatnonzero(total[:, 0] <= 0)[0])
+        raise ValueError(f"`weights` row {bad} has no positive weight among its top {k}.")
+    return order.astype(np.int32), top / total
+
+
+# ----------------------------------------------------------------------------------------------------
+# dual quaternions
+
+
+def transform_to_dual_quaternion(transform: Float[ArrayLike, "4 4"]) -> Float[Array, "8"]:
+    """Rigid transform to unit dual quaternion `(q_r, q_d)`, both `wxyz`.
+
+    `q_r` is the rotation (with `w >= 0`), `q_d = ½ (0, t) ⊗ q_r`.
+
+    **Arguments:**
+
+    - `transform`: rigid transform, shape `(4, 4)` (or `(3, 4)`); the rotation block must be a
+      rotation matrix.
+
+    **Returns:** shape `(8,)`: `concatenate([q_r, q_d])`.
+    """
+    T = _as_float(transform)
+    if T.shape not in ((4, 4), (3, 4)):
+        raise ValueError(f"`transform` must have shape (4, 4) or (3, 4), got shape {T.shape}.")
+    qr = matrix_to_quaternion(T[:3, :3])
+    tq = jnp.concatenate([jnp.zeros((1,), T.dtype), T[:3, 3]])
+    qd = 0.5 * quaternion_multiply(tq, qr)
+    return jnp.concatenate([qr, qd])
+
+
+def _dq_apply(dq: Float[Array, "8"], x: Float[Array, "3"]) -> Float[Array, "3"]:
+    qr, qd = dq[:4], dq[4:]
+    conj = qr * jnp.array([1, -1, -1, -1], dtype=qr.dtype)
+    t = 2.0 * quaternion_multiply(qd, conj)[1:]
+    return quaternion_to_matrix(qr) @ x + t
+
+
+def dqs(
+    rest_vertices: Float[ArrayLike, "V 3"],
+    weight_indices: Int[ArrayLike, "V K"],
+    weights: Float[ArrayLike, "V K"],
+    transforms: Float[ArrayLike, "J 4 4"],
+) -> Float[Array, "V 3"]:
+    """Dual-quaternion skinning (Kavan, Collins, Žára, O'Sullivan 2007).
+
+    Each bone's rigid transform becomes a unit dual quaternion
+    ([`bodyprior.transform_to_dual_quaternion`][]). Per vertex, the `K` gathered dual quaternions are
+    sign-aligned to the one of the vertex's **dominant** (largest-weight) bone (antipodality: `q` and
+    `-q` are the same rotation), blended linearly, normalised by the norm of the real part, and applied.
+    Avoids LBS's "candy-wrapper" volume loss. With identity transforms it returns the rest mesh, with
+    finite gradients.
+
+    **Arguments:** as for [`bodyprior.lbs`][]; `transforms` must be rigid (rotation + translation).
+
+    **Returns:** posed vertices, shape `(V, 3)`, metres.
+
+    **Raises:** as for [`bodyprior.lbs`][].
+    """
+    x, idx, w, T = _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms)
+    dq = jax.vmap(transform_to_dual_quaternion)(T)  # (J, 8)
+    g = dq[idx]  # (V, K, 8)
+    pivot = jnp.take_along_axis(g, jnp.argmax(w, axis=1)[:, None, None], axis=1)  # (V, 1, 8)
+    dots = jnp.sum(g[..., :4] * pivot[..., :4], axis=-1)  # (V, K)
+    sign = jnp.where(dots < 0, -1.0, 1.0).astype(w.dtype)
+    b = jnp.einsum("vk,vkd->vd", w * sign, g)  # (V, 8)
+    n2 = jnp.sum(b[:, :4] ** 2, axis=-1, keepdims=True)
+    b = b / jnp.sqrt(jnp.maximum(n2, jnp.finfo(b.dtype).tiny ** 0.5))
+    return jax.vmap(_dq_apply)(b, x)
