@@ -1,0 +1,494 @@
+"""Learning an S-SCAPE shape space from registered meshes, and its statistical quality measures.
+
+Follows the humanshape learning pipeline (Pishchulin et al. 2017, §3–5; humanshape `learnPCA.m`,
+`GeneralizedProcrustes.cpp`, `ErrorEvaluation.cpp`): rigid generalised Procrustes alignment, then PCA
+of the flattened vertex coordinates; compactness, generalization and specificity as defined by the
+humanshape evaluation code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._kinematics import Similarity, umeyama
+from .._validate import check_array
+from ._model import SScapeModel
+
+
+# --------------------------------------------------------------------------------------------------
+# Generalised Procrustes alignment
+
+
+def _sq_energy(aligned, mean):
+    return jnp.sum((aligned - mean[None]) ** 2)
+
+
+@eqx.filter_jit
+def _align_to(meshes, reference, scale: bool):
+    transforms = jax.vmap(lambda x: umeyama(x, reference, with_scale=scale))(meshes)
+    aligned = jax.vmap(lambda t, x: t.apply(x))(transforms, meshes)
+    return transforms, aligned
+
+
+@eqx.filter_jit
+def _gpa(meshes, reference, scale: bool, n_iter: int, tol):
+    ref_size = jnp.sqrt(jnp.sum((reference - reference.mean(0)) ** 2))
+
+    def step(ref):
+        _, aligned = _align_to(meshes, ref, scale)
+        mean = aligned.mean(0)
+        if scale:  # fix the size of the mean so that the iteration cannot shrink everything to zero
+            mean = mean * ref_size / jnp.sqrt(jnp.sum((mean - mean.mean(0)) ** 2))
+        return mean, _sq_energy(aligned, mean)
+
+    def cond(state):
+        i, _, e_prev, e = state
+        return (i < n_iter) & (jnp.abs(e_prev - e) > tol * jnp.maximum(e, jnp.finfo(e.dtype).tiny))
+
+    def body(state):
+        i, ref, _, e = state
+        mean, e_new = step(ref)
+        return i + 1, mean, e, e_new
+
+    mean0, e0 = step(reference)
+    inf = jnp.asarray(jnp.inf, dtype=e0.dtype)
+    _, mean, _, _ = jax.lax.while_loop(cond, body, (jnp.asarray(1), mean0, inf, e0))
+    return _align_to(meshes, mean, scale)
+
+
+def procrustes_align(
+    meshes: Float[Array, "N V 3"],
+    *,
+    reference: Float[Array, "V 3"] | None = None,
+    scale: bool = False,
+    n_iter: int = 100,
+    tol: float = 1e-10,
+) -> tuple[Float[Array, "N V 3"], Similarity]:
+    """Generalised Procrustes alignment of meshes in vertex correspondence.
+
+    With `reference=None` this is generalised Procrustes analysis: start from the first mesh (centred
+    at its vertex centroid), then repeat "align every mesh to the current mean (Umeyama/Kabsch), take
+    the new mean" until the relative change of the energy `sum_i ||X_i - mean||_F^2` is below `tol`
+    or `n_iter` rounds have run. The result keeps the first mesh's orientation with the mean centred
+    at the origin. With a `reference`, every mesh is aligned once to that fixed shape (ordinary
+    Procrustes; no iteration).
+
+    Rigid (rotation + translation) by default, as humanshape: its `GeneralizedProcrustes.cpp`
+    centres each mesh at its vertex centroid and then, per round and per mesh, fits a 3x3 linear map
+    by least squares to the leave-one-out mean of the other meshes, projects it to the nearest
+    orthogonal matrix (SVD, `U V^T`), *skips* the mesh for that round if the determinant is negative,
+    and stops when the change of `sum_{i<j} ||X_i - X_j||_F` is at most 1e-5 or after 100 rounds.
+    Differences here: the full mean (not leave-one-out) is the target, the optimal proper rotation
+    (Kabsch with the reflection fix) is used instead of projecting a least-squares linear map, and the
+    energy is the squared Frobenius form. All converge to the same alignment up to a global rigid
+    motion for well-posed data. `scale=True` adds a per-mesh scale (similarity GPA) with the mean's
+    size fixed to that of the initial reference.
+
+    **Arguments:**
+
+    - `meshes`: shape `(N, V, 3)`.
+    - `reference`: optional fixed target shape `(V, 3)`.
+    - `scale`: also estimate a per-mesh scale.
+    - `n_iter`: maximum number of GPA rounds.
+    - `tol`: relative energy-change stopping tolerance.
+
+    **Returns:** `(aligned, transforms)`: aligned meshes `(N, V, 3)` and a batched `Similarity` (leaves
+    with a leading `N` axis) with `aligned[i] = transforms[i].apply(meshes[i])`.
+    """
+    dims: dict[str, int] = {}
+    check_array(meshes, "meshes", ("N", "V", 3), dims=dims)
+    if dims["N"] < 1:
+        raise ValueError("`meshes` must hold at least one mesh.")
+    if isinstance(n_iter, bool) or not isinstance(n_iter, (int, np.integer)) or n_iter < 1:
+        raise ValueError(f"`n_iter` must be a positive int, got {n_iter!r}.")
+    meshes = jnp.asarray(meshes)
+    if reference is not None:
+        check_array(reference, "reference", (dims["V"], 3))
+        return _align_to(meshes, jnp.asarray(reference, dtype=meshes.dtype), bool(scale))
+    ref = meshes[0] - meshes[0].mean(0)
+    return _gpa(meshes, ref, bool(scale), int(n_iter), float(tol))
+
+
+# --------------------------------------------------------------------------------------------------
+# PCA
+
+
+def _pca_host(x: np.ndarray):
+    """PCA of `(N, D)` data in float64: returns mean, components `(R, D)`, singular values `(R,)`."""
+    mu = x.mean(axis=0)
+    _, s, vt = np.linalg.svd(x - mu, full_matrices=False)
+    r = max(min(x.shape[0] - 1, x.shape[1]), 0)
+    vt, s = vt[:r], s[:r]
+    # Deterministic signs: the largest-magnitude entry of each component is positive.
+    pivot = np.argmax(np.abs(vt), axis=1)
+    signs = np.sign(vt[np.arange(r), pivot])
+    signs[signs == 0] = 1.0
+    return mu, vt * signs[:, None], s
+
+
+def _choose_components(ratio: np.ndarray, n_components, explained_variance) -> int:
+    r = ratio.shape[0]
+    if n_components is not None and explained_variance is not None:
+        raise ValueError("Pass at most one of `n_components` and `explained_variance`.")
+    if n_components is not None:
+        if isinstance(n_components, bool) or not isinstance(n_components, (int, np.integer)):
+            raise ValueError(f"`n_components` must be an int, got {type(n_components).__name__}.")
+        if not 0 <= n_components <= r:
+            raise ValueError(f"`n_components` must lie in [0, {r}] (at most N-1 for N meshes), got "
+                             f"{n_components}.")
+        return int(n_components)
+    if explained_variance is not None:
+        ev = float(explained_variance)
+        if not 0.0 < ev <= 1.0:
+            raise ValueError(f"`explained_variance` must lie in (0, 1], got {explained_variance}.")
+        cum = np.cumsum(ratio)
+        return int(min(np.searchsorted(cum, ev - 1e-12) + 1, r))
+    return r
+
+
+def learn(
+    meshes: Float[Array, "N V 3"],
+    faces,
+    *,
+    n_components: int | None = None,
+    explained_variance: float | None = None,
+    template: SScapeModel | None = None,
+    parents: Sequence[int] | None = None,
+    joint_names: Sequence[str] | None = None,
+    joint_regressor_indices=None,
+    joint_regressor_weights=None,
+    skin_indices=None,
+    skin_weights=None,
+    align: bool = True,
+    scale: bool = False,
+    n_iter: int = 100,
+) -> SScapeModel:
+    """Learns an S-SCAPE shape space from meshes in vertex correspondence.
+
+    Steps (humanshape `learnPCA.m`): optional rigid generalised Procrustes alignment
+    ([`bodyprior.sscape.procrustes_align`][]); PCA by SVD of the centred, flattened data in float64 on
+    the host; `stddev = singular values / sqrt(N - 1)` (unbiased; humanshape's `evalues` use `1/N`).
+    With a `template`, the aligned data are moved rigidly so that their mean best fits the template's
+    mean (humanshape `createModel.m` aligns the new mean to the old template), and the template's rig
+    is reused. Without a template, the rig comes from the keyword arguments; if none is given at all,
+    a single root joint at the vertex centroid with every vertex bound to it is used.
+
+    **Arguments:**
+
+    - `meshes`: training meshes `(N, V, 3)`, `N >= 2`, metres.
+    - `faces`: triangles `(F, 3)`, 0-based.
+    - `n_components`: number of components to keep (at most `N - 1`), or
+    - `explained_variance`: keep the fewest components whose cumulative explained variance ratio
+      reaches this fraction in `(0, 1]`. Neither: keep all `min(N - 1, 3V)` components.
+    - `template`: optional model whose rig (`parents`, `joint_names`, joint regressor, skin weights)
+      and frame are reused.
+    - `parents`, `joint_names`, `joint_regressor_indices`, `joint_regressor_weights`, `skin_indices`,
+      `skin_weights`: an explicit rig (all or none), see [`bodyprior.sscape.SScapeModel`][].
+    - `align`: run Procrustes alignment first (rigid unless `scale=True`).
+    - `n_iter`: maximum number of GPA rounds.
+
+    **Returns:** an [`bodyprior.sscape.SScapeModel`][] whose `explained_variance` leaf holds each
+    kept component's fraction of the total training variance.
+    """
+    dims: dict[str, int] = {}
+    check_array(meshes, "meshes", ("N", "V", 3), dims=dims)
+    check_array(faces, "faces", (None, 3), integer=True)
+    n, v = dims["N"], dims["V"]
+    if n < 2:
+        raise ValueError(f"`meshes` must hold at least 2 meshes, got {n}.")
+    rig_args = dict(
+        parents=parents,
+        joint_names=joint_names,
+        joint_regressor_indices=joint_regressor_indices,
+        joint_regressor_weights=joint_regressor_weights,
+        skin_indices=skin_indices,
+        skin_weights=skin_weights,
+    )
+    given = [k for k, a in rig_args.items() if a is not None]
+    if template is not None:
+        if not isinstance(template, SScapeModel):
+            raise ValueError(f"`template` must be an SScapeModel, got {type(template).__name__}.")
+        if given:
+            raise ValueError(f"Pass either `template` or an explicit rig, not both (got {given}).")
+        if template.n_vertices != v:
+            raise ValueError(f"`template` has {template.n_vertices} vertices but `meshes` have {v}.")
+        rig = {k: getattr(template, k) for k in rig_args}
+    elif given:
+        if len(given) != len(rig_args):
+            missing = sorted(set(rig_args) - set(given))
+            raise ValueError(f"An explicit rig needs all of {sorted(rig_args)}; missing {missing}.")
+        rig = rig_args
+    else:
+        rig = dict(
+            parents=(-1,),
+            joint_names=("root",),
+            joint_regressor_indices=np.arange(v, dtype=np.int32)[None],
+            joint_regressor_weights=np.full((1, v), 1.0 / v),
+            skin_indices=np.zeros((v, 1), np.int32),
+            skin_weights=np.ones((v, 1)),
+        )
+
+    x = jnp.asarray(meshes)
+    if align:
+        x, _ = procrustes_align(x, scale=scale, n_iter=n_iter)
+    x = np.asarray(x, dtype=np.float64)
+    if template is not None:
+        mean_t = np.asarray(template.mean, dtype=np.float64)
+        t, _ = _align_to(jnp.asarray(x.mean(0))[None], jnp.asarray(mean_t), False)
+        t = jax.tree_util.tree_map(lambda a: a[0], t)
+        x = np.asarray(jax.vmap(t.apply)(jnp.asarray(x)), dtype=np.float64)
+
+    mu, comps, s = _pca_host(x.reshape(n, v * 3))
+    var = s**2
+    total = var.sum()
+    ratio = var / total if total > 0 else np.zeros_like(var)
+    k = _choose_components(ratio, n_components, explained_variance)
+    dtype = jnp.asarray(meshes).dtype
+    return SScapeModel(
+        mean=jnp.asarray(mu.reshape(v, 3), dtype=dtype),
+        basis=jnp.asarray(comps[:k].reshape(k, v, 3), dtype=dtype),
+        stddev=jnp.asarray(s[:k] / np.sqrt(n - 1), dtype=dtype),
+        explained_variance=jnp.asarray(ratio[:k], dtype=dtype),
+        faces=faces,
+        **rig,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Quality measures (humanshape ErrorEvaluation.cpp; Styner et al. 2003)
+
+
+class Compactness(NamedTuple):
+    """Compactness curve; entry `M - 1` describes the first `M` components."""
+
+    ratio: Array
+    """Cumulative explained-variance ratio `sum_{k<=M} lambda_k / sum_k lambda_k`, shape `(K,)`."""
+    variance: Array
+    """Styner's `C(M) = sum_{k<=M} lambda_k` (model variances), shape `(K,)`."""
+    std_error: Array
+    """Styner's `sigma_C(M) = sqrt(2 / n) C(M)` (NaN when `n_samples` is not given), shape `(K,)`."""
+
+
+class Generalization(NamedTuple):
+    """Leave-one-out generalization error per number of components."""
+
+    n_components: tuple[int, ...]
+    mean: Array
+    """`G(M)`: mean over left-out meshes of the mean vertex error, shape `(len(n_components),)`."""
+    std: Array
+    """Standard deviation over left-out meshes."""
+    std_error: Array
+    """Styner's `sigma_G = std / sqrt(N - 1)`."""
+    errors: Array
+    """Per left-out mesh errors, shape `(N, len(n_components))`."""
+
+
+class Specificity(NamedTuple):
+    """Specificity per number of components."""
+
+    n_components: tuple[int, ...]
+    mean: Array
+    """`S(M)`: mean over samples of the mean vertex distance to the nearest training mesh."""
+    variance: Array
+    """Variance over samples (humanshape's mex returns this first, then the mean; named here)."""
+    std_error: Array
+    """Styner's `sigma_S = std / sqrt(S - 1)`."""
+    distances: Array
+    """Per-sample nearest-neighbour distances, shape `(n_samples, len(n_components))`."""
+
+
+def mean_vertex_distance(a: Float[Array, "V 3"], b: Float[Array, "V 3"]) -> Float[Array, ""]:
+    """`D(a, b) = (1/V) sum_v ||a_v - b_v||_2`, the distance used by all quality measures."""
+    return jnp.mean(jnp.linalg.norm(a - b, axis=-1))
+
+
+def compactness(model: SScapeModel, n_samples: int | None = None) -> Compactness:
+    """Compactness of a learned shape space (humanshape evalMode 0, fixed).
+
+    humanshape's code returns `ratio(M) * sqrt(2/n)`, Styner's standard-error factor misapplied; this
+    returns the cumulative explained-variance ratio (what should be plotted) and Styner's `C(M)` with
+    `sigma_C` separately. Model variances are `stddev**2`.
+
+    **Arguments:**
+
+    - `model`: a learned [`bodyprior.sscape.SScapeModel`][].
+    - `n_samples`: number of training meshes `n`, for `std_error`.
+    """
+    if not isinstance(model, SScapeModel):
+        raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
+    ratio = jnp.cumsum(model.explained_variance)
+    var = jnp.cumsum(model.stddev**2)
+    if n_samples is None:
+        se = jnp.full_like(var, jnp.nan)
+    else:
+        if int(n_samples) < 1:
+            raise ValueError(f"`n_samples` must be a positive int, got {n_samples}.")
+        se = jnp.sqrt(2.0 / int(n_samples)) * var
+    return Compactness(ratio, var, se)
+
+
+def _check_ms(n_components, upper: int, what: str) -> tuple[int, ...]:
+    if isinstance(n_components, (int, np.integer)):
+        n_components = (int(n_components),)
+    ms = tuple(int(m) for m in n_components)
+    if not ms:
+        raise ValueError("`n_components` must list at least one number of components.")
+    for m in ms:
+        if not 0 <= m <= upper:
+            raise ValueError(f"`n_components` entries must lie in [0, {upper}] ({what}), got {m}.")
+    return ms
+
+
+@eqx.filter_jit
+def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
+    n, v, _ = x.shape
+    flat = x.reshape(n, v * 3)
+    m_max = max(ms)
+
+    def one(j, idx):
+        xt = flat[idx]  # (T, D)
+        mu = xt.mean(0)
+        y = xt - mu
+        lam, u = jnp.linalg.eigh(y @ y.T)
+        lam, u = lam[::-1][:m_max], u[:, ::-1][:, :m_max]
+        tiny = jnp.finfo(lam.dtype).eps * y.shape[0] * 100 * jnp.maximum(lam[0], 0) if m_max else 0.0
+        valid = lam > tiny
+        s = jnp.sqrt(jnp.where(valid, lam, 1.0))
+        e = (y.T @ u) * jnp.where(valid, 1.0 / s, 0.0)  # (D, m_max), orthonormal columns
+        d = flat[j] - mu
+        b = e.T @ d
+        out = []
+        for m in ms:
+            r = d - e[:, :m] @ b[:m]
+            out.append(jnp.mean(jnp.linalg.norm(r.reshape(v, 3), axis=-1)))
+        return jnp.stack(out)
+
+    js = jnp.arange(n)
+    return jax.lax.map(lambda a: one(*a), (js, train_idx), batch_size=chunk_size)
+
+
+def generalization(
+    meshes: Float[Array, "N V 3"],
+    n_components: int | Sequence[int],
+    *,
+    n_train: int | None = None,
+    seed: int = 42,
+    chunk_size: int = 8,
+) -> Generalization:
+    """Leave-one-out generalization error (humanshape evalMode 1; Pishchulin et al. 2017 §5.1).
+
+    For each left-out mesh `x_j` and each `M`: PCA on the other meshes (all `N - 1`, or a random
+    subset of size `n_train` drawn with `seed`), `b = E_M^T (x_j - mu)`, `x_hat = mu + E_M b`, and
+    `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance. The meshes must already
+    be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in humanshape the
+    left-out mesh is not re-aligned. PCA uses the Gram matrix of the training set (run in float64).
+    Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
+
+    **Arguments:**
+
+    - `meshes`: aligned meshes `(N, V, 3)`, `N >= 2`.
+    - `n_components`: one or several numbers of components `M`, each in `[0, T - 1]` where `T` is
+      the training-set size.
+    - `n_train`: optional training subset size (`<= N - 1`).
+    - `seed`: NumPy seed for the subsets.
+    - `chunk_size`: left-out meshes per vmapped batch.
+
+    **Returns:** a [`bodyprior.sscape.Generalization`][].
+    """
+    dims: dict[str, int] = {}
+    check_array(meshes, "meshes", ("N", "V", 3), dims=dims)
+    n = dims["N"]
+    if n < 2:
+        raise ValueError(f"`meshes` must hold at least 2 meshes, got {n}.")
+    if n_train is None:
+        t = n - 1
+        base = np.arange(n - 1)
+        idx = np.stack([base + (base >= j) for j in range(n)])
+    else:
+        t = int(n_train)
+        if not 1 <= t <= n - 1:
+            raise ValueError(f"`n_train` must lie in [1, {n - 1}], got {n_train}.")
+        rng = np.random.default_rng(seed)
+        idx = np.stack([np.sort(rng.choice(np.delete(np.arange(n), j), t, replace=False)) for j in range(n)])
+    ms = _check_ms(n_components, t - 1, "at most the training-set size minus one")
+    errors = _generalization_kernel(jnp.asarray(meshes), jnp.asarray(idx, dtype=jnp.int32), ms,
+                                    max(1, int(chunk_size)))
+    mean = errors.mean(0)
+    std = errors.std(0, ddof=1) if n > 1 else jnp.zeros_like(mean)
+    return Generalization(ms, mean, std, std / np.sqrt(max(n - 1, 1)), errors)
+
+
+@eqx.filter_jit
+def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_size: int):
+    # ML Gaussian (1/n) of the training coefficients, sampled as m + U Lambda^{1/2} z.
+    m = coeffs.mean(0)
+    c = coeffs - m
+    cov = c.T @ c / coeffs.shape[0]
+    lam, u = jnp.linalg.eigh(cov)
+    samples = m + (z * jnp.sqrt(jnp.maximum(lam, 0.0))) @ u.T  # (S, m_max)
+
+    def nearest(b):
+        recon = jnp.stack([mean + jnp.tensordot(b[:k], basis[:k], axes=1) for k in ms])  # (nM, V, 3)
+        d = jax.lax.map(
+            lambda xi: jnp.mean(jnp.linalg.norm(recon - xi[None], axis=-1), axis=-1),
+            x,
+            batch_size=chunk_size,
+        )  # (N, nM)
+        return d.min(0)
+
+    return jax.lax.map(nearest, samples, batch_size=chunk_size)
+
+
+def specificity(
+    model: SScapeModel,
+    meshes: Float[Array, "N V 3"],
+    n_components: int | Sequence[int],
+    *,
+    key,
+    n_samples: int = 1000,
+    chunk_size: int = 32,
+) -> Specificity:
+    """Specificity of a shape space (humanshape evalMode 2; Pishchulin et al. 2017 §5.1).
+
+    The training meshes are projected onto the first `M_max = max(n_components)` components; a
+    Gaussian (ML mean and full covariance, `1/n`) is fitted to those coefficients and `n_samples`
+    samples `m + U Lambda^{1/2} z`, `z ~ N(0, I)`, are drawn. Each sample is reconstructed with its
+    first `M` coefficients only, and `s_i(M) = min_j D(y_i, x_j)` over all training meshes. For a model
+    learned from `meshes` this equals `b_k ~ N(0, lambda_k)` with `lambda_k` the `1/n` variances. The
+    paper uses 10,000 samples. Jitted; samples and meshes are processed `chunk_size` at a time.
+
+    **Arguments:**
+
+    - `model`: the shape space (usually learned from `meshes`).
+    - `meshes`: the aligned training meshes `(N, V, 3)`, in the model's frame.
+    - `n_components`: one or several `M` in `[0, model.n_components]`.
+    - `key`: JAX PRNG key for the samples.
+    - `n_samples`: number of samples `S`.
+    - `chunk_size`: batch size for the chunked loops.
+
+    **Returns:** a [`bodyprior.sscape.Specificity`][].
+    """
+    if not isinstance(model, SScapeModel):
+        raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
+    check_array(meshes, "meshes", (None, model.n_vertices, 3))
+    ms = _check_ms(n_components, model.n_components, "the model's number of components")
+    s = int(n_samples)
+    if s < 2:
+        raise ValueError(f"`n_samples` must be at least 2, got {n_samples}.")
+    x = jnp.asarray(meshes)
+    m_max = max(ms)
+    basis = model.basis[:m_max]
+    coeffs = jnp.einsum("nvd,kvd->nk", x - model.mean[None], basis)
+    z = jr.normal(key, (s, m_max), dtype=model.mean.dtype)
+    dist = _specificity_kernel(model.mean, basis, coeffs, x, z, ms, max(1, int(chunk_size)))
+    mean = dist.mean(0)
+    var = dist.var(0)
+    return Specificity(ms, mean, var, jnp.sqrt(dist.var(0, ddof=1)) / np.sqrt(s - 1), dist)
