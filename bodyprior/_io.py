@@ -403,6 +403,14 @@ def _ply_binary_element(path, raw, pos, el, endian):
             return {p[0]: rec[p[0]] for p in props}, pos + n * dt.itemsize
     # Slow path: variable-length lists (quads, polygons).
     out: dict[str, list] = {p[0]: [] for p in props}
+    try:
+        _ply_binary_lists(raw, pos, n, props, endian, out)
+    except ValueError:
+        raise _fail(path, f"file is truncated or malformed in element {el['name']!r}.") from None
+    return out, out.pop("__pos__")
+
+
+def _ply_binary_lists(raw, pos, n, props, endian, out):
     for _ in range(n):
         for name, kind, t, ct in props:
             if kind == "list":
@@ -416,7 +424,7 @@ def _ply_binary_element(path, raw, pos, el, endian):
                 vdt = np.dtype(endian + t)
                 out[name].append(np.frombuffer(raw, vdt, 1, pos)[0])
                 pos += vdt.itemsize
-    return out, pos
+    out["__pos__"] = pos
 
 
 def _read_ply(path: str, raw: bytes):

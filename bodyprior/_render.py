@@ -231,15 +231,22 @@ def _shade(vertices, faces, r: _Raster, light_dir, smooth=True) -> np.ndarray:
     if light_dir is None:
         key = 0.45 * r.axes[0] + 0.6 * r.axes[1] + 1.0 * r.axes[2]  # upper-right-front of the camera
     else:
-        key = np.asarray(light_dir, dtype=np.float64)
-        if key.shape != (3,) or not np.all(np.isfinite(key)) or np.linalg.norm(key) == 0:
-            raise ValueError(f"`light_dir` must be a non-zero finite (3,) vector, got {light_dir!r}.")
+        key = _check_light(light_dir)
     key = key / np.linalg.norm(key)
     fill = -0.6 * r.axes[0] + 0.1 * r.axes[1] + 0.8 * r.axes[2]
     fill = fill / np.linalg.norm(fill)
     diff = np.clip(n @ key, 0.0, 1.0)
     filll = np.clip(n @ fill, 0.0, 1.0)
     return np.clip(0.28 + 0.62 * diff + 0.18 * filll, 0.0, 1.0)
+
+
+def _check_light(light_dir):
+    if light_dir is None:
+        return None
+    key = np.asarray(light_dir, dtype=np.float64)
+    if key.shape != (3,) or not np.all(np.isfinite(key)) or np.linalg.norm(key) == 0:
+        raise ValueError(f"`light_dir` must be None or a non-zero finite (3,) vector, got {light_dir!r}.")
+    return key
 
 
 def _compose(r: _Raster, fg: np.ndarray, background) -> np.ndarray:
@@ -315,6 +322,8 @@ def render_mesh(
     color = _check_color(color, "color")
     background = _check_color(background, "background")
     ss = _check_ss(antialias)
+    _check_light(light_dir)
+    _camera_axes(view)
     r = _rasterize(vertices, faces, view, (h * ss, w * ss), fit)
     shade = _shade(vertices, faces, r, light_dir, smooth)
     img = _compose(r, shade[:, None] * color[None, :], background)
@@ -364,6 +373,8 @@ def render_vertex_colors(
     h, w = _check_size(size)
     background = _check_color(background, "background")
     ss = _check_ss(antialias)
+    _check_light(light_dir)
+    _camera_axes(view)
     if not 0.0 <= float(shading) <= 1.0:
         raise ValueError(f"`shading` must lie in [0, 1], got {shading!r}.")
     vmin = float(values.min()) if vmin is None else float(vmin)
