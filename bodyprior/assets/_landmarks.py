@@ -86,6 +86,8 @@ class _Ctx:
         self.J = {k: np.asarray(v, float) for k, v in J.items()}
         V = self.V
         self.mid = np.abs(V[:, 0]) < MIDLINE_TOL
+        F = np.asarray(F)
+        self.E = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
         j = self.J
         top = j["Head"] + np.array([0.0, 0.0, V[:, 2].max() - j["Head"][2]])
         segs = {
@@ -160,6 +162,28 @@ class _Ctx:
             out[k] = V[k] @ direction >= (V[order[lo:hi]] @ direction).max() - tol
         return out
 
+    def section(self, mask, origin, normal):
+        """Cross-section of the mesh by a plane, restricted to edges touching `mask`: the crossing points and,
+        for each, the index of the nearer edge endpoint (the vertex the landmark snaps to)."""
+        V = self.V
+        sd = (V - origin) @ normal
+        a, b = self.E[:, 0], self.E[:, 1]
+        cross = (sd[a] * sd[b] < 0) & (mask[a] | mask[b])
+        a, b = a[cross], b[cross]
+        t = sd[a] / (sd[a] - sd[b])
+        P = V[a] + t[:, None] * (V[b] - V[a])
+        return P, np.where(t < 0.5, a, b)
+
+    def sect_ext(self, mask, origin, normal, direction, keep=None):
+        """Vertex nearest to the extreme point along `direction` of a plane section (optionally filtered)."""
+        P, idx = self.section(mask, origin, normal)
+        if keep is not None:
+            k = keep(P)
+            P, idx = P[k], idx[k]
+        if len(P) == 0:
+            raise ValueError("empty landmark section")
+        return int(idx[np.argmax(P @ np.asarray(direction, float))])
+
     def at_z(self, mask, z):
         """The vertex of `mask` whose height is closest to z."""
         idx = np.flatnonzero(mask)
@@ -203,13 +227,13 @@ def landmark_table(template: np.ndarray, faces: np.ndarray, joints: dict[str, np
         "below the nose tip) and the lower lip (most anterior point from the chin to 1.5 cm below the nose tip)")
     # eye socket: right-side head vertices in front of the face whose normals point backwards (closed cavity)
     face_front = head & (V[:, 1] < J["Head"][1] - 0.08)
-    sock = face_front & (V[:, 0] < -0.012) & (N[:, 1] > 0.3) & (V[:, 2] > V[nose, 2]) & (V[:, 2] < V[glab, 2] + 0.01)
+    zsel = V[R["Sellion"], 2]
+    sock = face_front & (V[:, 0] < -0.015) & (V[:, 0] > -0.06) & (N[:, 1] > 0.3) & (np.abs(V[:, 2] - zsel) < 0.02)
     eye = V[sock].mean(0)
     eye_low = V[sock, 2].min()
-    cand = head & (np.abs(V[:, 0] - eye[0]) < 4e-3) & (np.abs(V[:, 2] - (eye_low - 0.006)) < 4e-3) & (N[:, 1] < 0)
-    put("Rt. Infraorbitale", c.ext(cand, _ANT),
+    put("Rt. Infraorbitale", c.win(head & (N[:, 1] < 0), _ANT, x=eye[0], z=eye_low - 0.006, h=4e-3),
         "most anterior vertex 6 mm below the lowest point of the right eye socket, in the eye-centre column "
-        "(eye socket = backward-facing head vertices in front of the face between nose tip and brow)")
+        "(eye socket = backward-facing face vertices 1.5-6 cm right of the midline within 2 cm of Sellion height)")
     # ear: laterally protruding head vertices between nose-tip and brow height, behind the face
     band = head & (V[:, 2] > zn - 0.03) & (V[:, 2] < V[glab, 2]) & (V[:, 0] < 0)
     xr = V[band, 0].min()
@@ -243,33 +267,41 @@ def landmark_table(template: np.ndarray, faces: np.ndarray, joints: dict[str, np
     trunk_len = zs - zc
     put("Substernale", c.at_z(front, zs - 0.30 * trunk_len),
         "most anterior midline vertex at 30% of the Suprasternale-to-Crotch height below Suprasternale")
-    chest = torso & (V[:, 0] < -0.03) & (V[:, 0] > J["RightArm"][0] + 0.02) & (V[:, 2] > zs - 0.35 * trunk_len) & (V[:, 2] < zs - 0.05)
+    xa = J["RightArm"][0]
+    chest = torso & (V[:, 0] < 0.35 * xa) & (V[:, 0] > 0.75 * xa) & (V[:, 2] > zs - 0.35 * trunk_len) & (V[:, 2] < zs - 0.05)
     put("Rt. Thelion/Bustpoint", c.ext(chest, _ANT),
-        "most anterior trunk vertex right of x=-3 cm, 2 cm medial of the shoulder joint, 5 cm to 35% trunk "
-        "height below Suprasternale")
+        "most anterior trunk vertex with x in 35-75% of the shoulder-joint x, from 5 cm to 35% of the "
+        "Suprasternale-to-Crotch height below Suprasternale")
     z10 = zs - 0.50 * trunk_len
     side = torso & (V[:, 0] < 0)
-    put("Rt. 10th Rib", c.ext(side & c.zband(z10), LAT),
-        "most lateral right trunk vertex at 50% of the Suprasternale-to-Crotch height below Suprasternale")
+
+    def lateral_at(z, mask=side):  # most lateral point of the horizontal section at z, near mid-coronal plane
+        P, _ = c.section(mask, np.array([0, 0, z]), _UP)
+        yc = 0.5 * (P[:, 1].min() + P[:, 1].max())
+        return c.sect_ext(mask, np.array([0, 0, z]), _UP, LAT, keep=lambda Q: np.abs(Q[:, 1] - yc) < 0.03)
+
+    put("Rt. 10th Rib", lateral_at(z10),
+        "most lateral right trunk vertex at 50% of the Suprasternale-to-Crotch height below Suprasternale, "
+        "within 3 cm of the slice's mid-coronal plane")
     put("10th Rib Midspine", c.at_z(back, z10),
         "most posterior midline vertex at the height of the 10th Rib landmark")
-    zs_ = np.linspace(J["Hips"][2], z10, 40)
-    width = [np.ptp(V[torso & c.zband(z, 3e-3), 0]) for z in zs_]
+    zs_ = np.linspace(J["Hips"][2], z10 - 0.03, 40)
+    width = [np.ptp(c.section(np.abs(V[:, 0]) < 0.25, np.array([0, 0, z]), _UP)[0][:, 0]) for z in zs_]
     zw = zs_[int(np.argmin(width))]
     put("Waist, Preferred, Post.", c.at_z(back, zw),
-        "most posterior midline vertex at the height of the narrowest trunk width between the Hips joint and "
-        "the 10th Rib height")
+        "most posterior midline vertex at the height of the narrowest trunk width (|x| < 25 cm) between the "
+        "Hips joint and 3 cm below the 10th Rib height")
     hip = J["RightUpLeg"]
     za = hip[2] + 0.06
     put("Rt. ASIS", c.win(torso, _ANT, x=1.15 * hip[0], z=za, h=8e-3),
         "most anterior trunk vertex 6 cm above the hip joint, within 8 mm of x = 1.15 * hip-joint x")
     put("Rt. PSIS", c.win(torso, -_ANT, x=0.40 * hip[0], z=za, h=8e-3),
         "most posterior trunk vertex at ASIS height, within 8 mm of x = 0.40 * hip-joint x")
-    put("Rt. Iliocristale", c.ext(side & c.zband(hip[2] + 0.10), LAT),
-        "most lateral right trunk vertex 10 cm above the hip joint")
+    put("Rt. Iliocristale", lateral_at(hip[2] + 0.10),
+        "most lateral right trunk vertex 10 cm above the hip joint, within 3 cm of the mid-coronal plane")
     thighish = c.part["thigh"] | c.part["pelvis"]
-    put("Rt. Trochanterion", c.ext(thighish & c.zband(hip[2]), LAT),
-        "most lateral pelvis/thigh vertex at hip-joint height")
+    put("Rt. Trochanterion", lateral_at(hip[2], thighish),
+        "most lateral pelvis/thigh vertex at hip-joint height, within 3 cm of the slice's mid-coronal plane")
 
     # ---------------- arm ----------------
     sh, el, wr = J["RightArm"], J["RightForeArm"], J["RightHand"]
@@ -281,12 +313,13 @@ def landmark_table(template: np.ndarray, faces: np.ndarray, joints: dict[str, np
     # armpit apex: highest downward-facing vertex in the coronal slab of the shoulder joint, medial of it
     cand = (np.abs(V[:, 1] - sh[1]) < 0.015) & (V[:, 0] > sh[0]) & (V[:, 0] < sh[0] + 0.08) & (V[:, 2] < sh[2]) & (N[:, 2] < -0.5)
     apex = V[c.ext(cand, _UP)]
-    cand = (np.abs(V[:, 0] - apex[0]) < 6e-3) & c.zband(apex[2] - 0.015, 4e-3)
-    put("Rt. Axilla, Ant", c.ext(cand, _ANT),
-        "most anterior vertex 1.5 cm below the armpit apex, within 6 mm of its x (apex = highest downward-facing "
-        "vertex within 8 cm medial of the shoulder joint in its coronal slab)")
-    put("Rt. Axilla, Post.", c.ext(cand, -_ANT),
-        "most posterior vertex 1.5 cm below the armpit apex, within 6 mm of its x")
+    pit = np.linalg.norm(V - apex, axis=1) < 0.08
+    keep = lambda Q: (Q[:, 2] < apex[2] + 0.02) & (Q[:, 2] > apex[2] - 0.03)  # noqa: E731
+    put("Rt. Axilla, Ant", c.sect_ext(pit, apex, np.array([1.0, 0, 0]), _ANT, keep),
+        "most anterior point of the sagittal section through the armpit apex, from 3 cm below to 2 cm above it "
+        "(apex = highest downward-facing vertex within 8 cm medial of the shoulder joint in its coronal slab)")
+    put("Rt. Axilla, Post.", c.sect_ext(pit, apex, np.array([1.0, 0, 0]), -_ANT, keep),
+        "most posterior point of the sagittal section through the armpit apex, from 3 cm below to 2 cm above it")
     d_ole = _unit(ua - fa) if np.linalg.norm(ua - fa) > 0.1 else np.array([0.0, 1.0, 0.0])
     near_el = arm & (np.linalg.norm(V - el, axis=1) < 0.07)
     put("Rt. Olecranon", c.ext(near_el, d_ole),
@@ -332,21 +365,20 @@ def landmark_table(template: np.ndarray, faces: np.ndarray, joints: dict[str, np
     la = _unit(an - hip)
     lat_leg = _unit(LAT - (LAT @ la) * la)
     leg = c.part["thigh"] | c.part["shin"]
-    sk = (V - kj) @ la
-    kslab = leg & (np.abs(sk) < 0.006) & (np.linalg.norm(V - kj, axis=1) < 0.12)
-    put("Rt. Knee Crease", c.ext(kslab, -_ANT),
-        "most posterior leg vertex in the slab (+-6 mm) through the knee joint perpendicular to the hip-ankle axis")
-    put("Rt. Femoral Lateral Epicn", c.ext(kslab, lat_leg),
-        "most lateral leg vertex in the slab (+-6 mm) through the knee joint perpendicular to the hip-ankle axis")
-    put("Rt. Femoral Medial Epicn", c.ext(kslab, -lat_leg),
-        "most medial leg vertex in the slab (+-6 mm) through the knee joint perpendicular to the hip-ankle axis")
+    kleg = leg & (np.linalg.norm(V - kj, axis=1) < 0.12)
+    put("Rt. Knee Crease", c.sect_ext(kleg, kj, la, -_ANT),
+        "most posterior leg vertex in the section through the knee joint perpendicular to the hip-ankle axis")
+    put("Rt. Femoral Lateral Epicn", c.sect_ext(kleg, kj, la, lat_leg),
+        "most lateral leg vertex in the section through the knee joint perpendicular to the hip-ankle axis")
+    put("Rt. Femoral Medial Epicn", c.sect_ext(kleg, kj, la, -lat_leg),
+        "most medial leg vertex in the section through the knee joint perpendicular to the hip-ankle axis")
     lower = (c.part["shin"] | c.part["foot"]) & (np.linalg.norm(V - an, axis=1) < 0.08)
-    put("Rt. Lateral Malleolus", c.ext(lower & c.zband(an[2] - 0.005, 4e-3), LAT),
-        "most lateral shin/foot vertex 5 mm below the ankle joint height")
-    put("Rt. Medial Malleolus", c.ext(lower & c.zband(an[2] + 0.005, 4e-3), -LAT),
-        "most medial shin/foot vertex 5 mm above the ankle joint height")
+    put("Rt. Lateral Malleolus", c.sect_ext(lower, an - 0.005 * _UP, _UP, LAT),
+        "most lateral point of the horizontal shin/foot section 5 mm below the ankle joint (nearest vertex)")
+    put("Rt. Medial Malleolus", c.sect_ext(lower, an + 0.005 * _UP, _UP, -LAT),
+        "most medial point of the horizontal shin/foot section 5 mm above the ankle joint (nearest vertex)")
     mm = V[R["Rt. Medial Malleolus"]]
-    put("Rt. Sphyrion", c.ext(lower & c.zband(mm[2] - 0.015, 4e-3) & (np.abs(V[:, 1] - mm[1]) < 0.015), -LAT),
+    put("Rt. Sphyrion", c.sect_ext(lower, mm - 0.015 * _UP, _UP, -LAT, keep=lambda Q: np.abs(Q[:, 1] - mm[1]) < 0.015),
         "most medial vertex 1.5 cm below the medial malleolus, within 1.5 cm of it front-to-back")
     foot = c.part["foot"] | ((c.part["shin"]) & (V[:, 2] < an[2]))
     foot &= (np.abs(V[:, 0] - an[0]) < 0.12)
@@ -427,10 +459,16 @@ def render_check(vertices, faces, names, indices, path, title="CAESAR landmarks 
              ("right side", np.array([0, -1, 0]), np.array([-1, 0, 0]), None),
              ("left side", np.array([0, 1, 0]), np.array([1, 0, 0]), None),
              ("face, front", np.array([1, 0, 0]), np.array([0, -1, 0]), (V[:, 2].max() - 0.27, 0.12)),
-             ("face, right", np.array([0, -1, 0]), np.array([-1, 0, 0]), (V[:, 2].max() - 0.27, 0.12))]  # fmt: skip
-    fig, axs = plt.subplots(2, 3, figsize=(24, 26), gridspec_kw={"height_ratios": [1, 1]})
+             ("face, right", np.array([0, -1, 0]), np.array([-1, 0, 0]), (V[:, 2].max() - 0.27, 0.12)),
+             ("right hand, lateral", np.array([0, -1, 0]), np.array([-1, 0, 0]), ("box", V[:, 0] < -0.36)),
+             ("right hand, medial", np.array([0, 1, 0]), np.array([1, 0, 0]), ("box", V[:, 0] < -0.36)),
+             ("right foot, medial", np.array([0, 1, 0]), np.array([1, 0, 0]), ("box", (V[:, 2] < V[:, 2].min() + 0.12) & (V[:, 0] < 0))),
+             ("right foot, lateral", np.array([0, -1, 0]), np.array([-1, 0, 0]), ("box", (V[:, 2] < V[:, 2].min() + 0.12) & (V[:, 0] < 0)))]  # fmt: skip
+    fig, axs = plt.subplots(3, 4, figsize=(32, 36))
     axs = axs.ravel()
-    order_axes = [0, 1, 3, 4, 2, 5]
+    order_axes = [0, 1, 4, 5, 2, 3, 6, 7, 8, 9]
+    for a in axs[10:]:
+        a.axis("off")
     idx = np.asarray(indices)
     for k_ax, (vt, right, cam, zoom) in zip(order_axes, views):
         ax = axs[k_ax]
@@ -438,8 +476,9 @@ def render_check(vertices, faces, names, indices, path, title="CAESAR landmarks 
         P = np.stack([V @ right, V @ up], 1)
         depth = (V @ cam)[F].mean(1)
         keep = fn @ cam > 0
-        if zoom is not None:
-            keep &= V[F[:, 0], 2] > zoom[0]
+        box = zoom is not None and zoom[0] == "box"
+        inside = zoom[1] if box else (V[:, 2] > zoom[0] if zoom is not None else np.ones(len(V), bool))
+        keep &= inside[F[:, 0]]
         fo = np.flatnonzero(keep)
         fo = fo[np.argsort(depth[fo])]
         light = 0.35 + 0.6 * np.clip(fn[fo] @ _unit(cam + np.array([0.3, -0.2, 0.5])), 0, 1)
@@ -447,12 +486,12 @@ def render_check(vertices, faces, names, indices, path, title="CAESAR landmarks 
         ax.add_collection(pc)
         vis = N[idx] @ cam > 0.05
         for k, (n, i) in enumerate(zip(names, idx)):
-            if not vis[k] or (zoom is not None and V[i, 2] < zoom[0]):
+            if not vis[k] or not inside[i]:
                 continue
             ax.scatter(*P[i], s=18 if zoom is None else 40, c="red", zorder=5, edgecolors="white", linewidths=0.4)
             ax.annotate(n, P[i], fontsize=6.5 if zoom is None else 10, color="darkred", xytext=(3, 2),
                         textcoords="offset points", zorder=6)
-        sel = P if zoom is None else P[V[:, 2] > zoom[0]]
+        sel = P[inside]
         ax.set_xlim(sel[:, 0].min() - 0.02, sel[:, 0].max() + 0.02)
         ax.set_ylim(sel[:, 1].min() - 0.02, sel[:, 1].max() + 0.02)
         ax.set_aspect("equal")
