@@ -221,9 +221,10 @@ def quaternion_to_matrix(q: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
 def matrix_to_quaternion(R: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]:
     """Rotation matrix to unit quaternion `(w, x, y, z)` by Shepperd's method, branch-free.
 
-    All four candidate formulas are evaluated (each with its square root clamped, so unused branches are
-    finite and have finite gradients); the one with the largest `4 q_i^2` is picked by `argmax`. The
-    result is normalised and its sign chosen so that `w >= 0`.
+    The four candidate formulas are the rows of the symmetric matrix `K = 4 q qᵀ` built linearly from
+    `R`; the row with the largest diagonal entry `4 q_i²` is picked by `argmax` (no Python branch), and
+    divided by `4 |q_i|` (clamped, so value and gradient are finite everywhere). The result is
+    normalised and its sign chosen so that `w >= 0`.
 
     **Arguments:**
 
@@ -236,18 +237,19 @@ def matrix_to_quaternion(R: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]:
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
     tr = r00 + r11 + r22
-    # 4 w², 4 x², 4 y², 4 z² (for an exact rotation); the largest is >= 1.
-    sq = jnp.stack([1 + tr, 1 + 2 * r00 - tr, 1 + 2 * r11 - tr, 1 + 2 * r22 - tr])
-    s = 2.0 * jnp.sqrt(jnp.maximum(sq, 0.25))  # = 4 |q_i| on the branch that is used
-    cands = jnp.stack(
+    # For an exact rotation K = 4 q qᵀ; row i is 4 q_i q and the diagonal holds 4 q_i² (the largest
+    # is >= 1). Shepperd: take the row with the largest diagonal entry and divide by 4 |q_i|.
+    K = jnp.stack(
         [
-            jnp.stack([s[0] / 4, (r21 - r12) / s[0], (r02 - r20) / s[0], (r10 - r01) / s[0]]),
-            jnp.stack([(r21 - r12) / s[1], s[1] / 4, (r01 + r10) / s[1], (r02 + r20) / s[1]]),
-            jnp.stack([(r02 - r20) / s[2], (r01 + r10) / s[2], s[2] / 4, (r12 + r21) / s[2]]),
-            jnp.stack([(r10 - r01) / s[3], (r02 + r20) / s[3], (r12 + r21) / s[3], s[3] / 4]),
+            jnp.stack([1 + tr, r21 - r12, r02 - r20, r10 - r01]),
+            jnp.stack([r21 - r12, 1 + 2 * r00 - tr, r01 + r10, r02 + r20]),
+            jnp.stack([r02 - r20, r01 + r10, 1 + 2 * r11 - tr, r12 + r21]),
+            jnp.stack([r10 - r01, r02 + r20, r12 + r21, 1 + 2 * r22 - tr]),
         ]
     )
-    q = cands[jnp.argmax(sq)]
+    i = jnp.argmax(jnp.diagonal(K))
+    # K[i, i] >= 1 for a rotation; the clamp only guards far-from-orthogonal input.
+    q = K[i] / (2.0 * jnp.sqrt(jnp.maximum(K[i, i], 0.25)))
     q = q / jnp.sqrt(jnp.sum(q * q))
     return jnp.where(q[0] < 0, -q, q)
 
