@@ -41,7 +41,7 @@ __all__ = [
 _NAMED_VIEWS = {"front": (0.0, 0.0), "left": (90.0, 0.0), "side": (90.0, 0.0), "back": (180.0, 0.0),
                 "right": (270.0, 0.0), "top": (0.0, 90.0), "bottom": (0.0, -90.0)}  # fmt: skip
 
-_MAX_FRAGMENTS = 1 << 21  # candidate pixels per rasterisation chunk (bounds peak memory, ~100 MB)
+_MAX_FRAGMENTS = 1 << 20  # candidate pixels per rasterisation chunk (bounds peak memory, ~200 MB)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -169,6 +169,23 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
     bw, bh = bx1 - bx0, by1 - by0
     keep = (np.abs(area) > 1e-12) & (bw > 0) & (bh > 0)  # drops degenerate and off-screen triangles
     tris = np.nonzero(keep)[0]
+    # Per-triangle affine coefficients: barycentrics l0, l1 and depth at pixel (bx0 + dx, by0 + dy) are
+    # D + a * dx + b * dy, with D evaluated at the bounding box's first pixel centre (no cancellation).
+    x0, x1, x2, y0, y1, y2 = (q[tris] for q in (x0, x1, x2, y0, y1, y2))
+    inv = 1.0 / area[tris]
+    ox, oy = bx0[tris] + 0.5, by0[tris] + 0.5
+    d0 = ((x1 - ox) * (y2 - oy) - (x2 - ox) * (y1 - oy)) * inv
+    d1 = ((x2 - ox) * (y0 - oy) - (x0 - ox) * (y2 - oy)) * inv
+    a0, b0 = (y1 - y2) * inv, (x2 - x1) * inv
+    a1, b1 = (y2 - y0) * inv, (x0 - x2) * inv
+    z0, z1, z2 = sz[faces[tris]].T
+    dz0, dz1 = z0 - z2, z1 - z2
+    tbw = bw[tris].astype(np.float64)
+    table = np.stack(
+        [d0, a0, b0, d1, a1, b1, z2 + d0 * dz0 + d1 * dz1, a0 * dz0 + a1 * dz1, b0 * dz0 + b1 * dz1,
+         tbw, 1.0 / tbw, (by0[tris] * w + bx0[tris]).astype(np.float64)],
+        axis=1,
+    )  # fmt: skip
     counts = (bw * bh)[tris]
     best_z = np.full(h * w, -np.inf)
     # Chunk triangles so that the candidate-fragment arrays stay bounded.
@@ -178,28 +195,24 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
         base = csum[starts[-1] - 1] if starts[-1] > 0 else 0
         stop = int(np.searchsorted(csum, base + _MAX_FRAGMENTS, side="right"))
         starts.append(max(stop, starts[-1] + 1))
+    eps = -1e-9
     for a, b in zip(starts[:-1], starts[1:]):
-        t = tris[a:b]
         c = counts[a:b]
-        rep = np.repeat(np.arange(len(t)), c)
-        local = np.arange(rep.shape[0]) - np.repeat(np.cumsum(c) - c, c)
-        tt = t[rep]
-        bwt = bw[tt]
-        px = bx0[tt] + local % bwt + 0.5
-        py = by0[tt] + local // bwt + 0.5
-        inv = 1.0 / area[tt]
-        # Barycentric weights from edge functions (sign-normalised by the signed area).
-        l0 = ((x1[tt] - px) * (y2[tt] - py) - (x2[tt] - px) * (y1[tt] - py)) * inv
-        l1 = ((x2[tt] - px) * (y0[tt] - py) - (x0[tt] - px) * (y2[tt] - py)) * inv
+        rep = np.repeat(np.arange(a, b), c)  # row of `table` for every candidate pixel
+        local = (np.arange(rep.shape[0]) - np.repeat(np.cumsum(c) - c, c)).astype(np.float64)
+        T = table[rep]
+        dy = np.floor((local + 0.5) * T[:, 10])
+        dx = local - dy * T[:, 9]
+        l0 = T[:, 0] + T[:, 1] * dx + T[:, 2] * dy
+        l1 = T[:, 3] + T[:, 4] * dx + T[:, 5] * dy
         l2 = 1.0 - l0 - l1
-        eps = -1e-9
         inside = (l0 >= eps) & (l1 >= eps) & (l2 >= eps)
         if not np.any(inside):
             continue
-        tt, l0, l1, l2 = tt[inside], l0[inside], l1[inside], l2[inside]
-        pix = (py[inside] - 0.5).astype(np.int64) * w + (px[inside] - 0.5).astype(np.int64)
-        f = faces[tt]
-        depth = l0 * sz[f[:, 0]] + l1 * sz[f[:, 1]] + l2 * sz[f[:, 2]]  # larger = nearer the camera
+        Ti, dx, dy = T[inside], dx[inside], dy[inside]
+        depth = Ti[:, 6] + Ti[:, 7] * dx + Ti[:, 8] * dy  # larger = nearer the camera
+        pix = (Ti[:, 11] + dy * w + dx).astype(np.int64)
+        # Nearest fragment per pixel: one sort on pixel index, ties broken by depth (nearest first).
         order = np.lexsort((-depth, pix))
         pix_s = pix[order]
         first = np.ones(len(order), dtype=bool)
@@ -209,8 +222,10 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
         nearer = depth[sel] > best_z[pix_u]
         sel, pix_u = sel[nearer], pix_u[nearer]
         best_z[pix_u] = depth[sel]
-        tri_id[pix_u] = tt[sel]
-        bary[pix_u] = np.stack([l0[sel], l1[sel], l2[sel]], axis=1)
+        rows = rep[inside][sel]
+        tri_id[pix_u] = tris[rows]
+        bl0, bl1 = l0[inside][sel], l1[inside][sel]
+        bary[pix_u] = np.stack([bl0, bl1, 1.0 - bl0 - bl1], axis=1)
     return _Raster(tri_id.reshape(h, w), bary.reshape(h, w, 3), axes)
 
 
