@@ -73,11 +73,11 @@ def test_zero_pose_gives_identity_transforms():
     parents = random_tree(rng, 12)
     h = rng.normal(size=(12, 3))
     eye = np.broadcast_to(np.eye(3), (12, 3, 3))
-    A, t = forward_kinematics(parents, eye, h, np.zeros(3))
+    A, t = fk(parents, eye, h, np.zeros(3))
     np.testing.assert_allclose(A, np.broadcast_to(np.eye(4), (12, 4, 4)), atol=1e-15)
     np.testing.assert_allclose(t, h, atol=1e-15)
     trans = np.array([0.1, -2.0, 0.5])
-    A, t = forward_kinematics(parents, eye, h, trans)
+    A, t = fk(parents, eye, h, trans)
     np.testing.assert_allclose(t, h + trans, atol=1e-15)
     np.testing.assert_allclose(A[:, :3, :3], eye, atol=1e-15)
     np.testing.assert_allclose(A[:, :3, 3], np.broadcast_to(trans, (12, 3)), atol=1e-15)
@@ -88,7 +88,7 @@ def test_hand_computed_chain():
     h = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
     Rz90 = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
     R = np.stack([Rz90, Rz90, np.eye(3)])
-    A, t = forward_kinematics(parents, R, h, np.array([0.0, 0.0, 1.0]))
+    A, t = fk(parents, R, h, np.array([0.0, 0.0, 1.0]))
     np.testing.assert_allclose(t, [[0, 0, 1], [0, 1, 1], [-1, 1, 1]], atol=1e-15)
     Rz180 = Rz90 @ Rz90
     np.testing.assert_allclose(A[2, :3, :3], Rz180, atol=1e-15)
@@ -99,7 +99,7 @@ def test_hand_computed_chain():
     np.testing.assert_allclose(A[:, 3], np.broadcast_to([0, 0, 0, 1.0], (3, 4)))
 
 
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(2))
 def test_matches_naive_loop_on_random_31_joint_tree(seed):
     rng = np.random.default_rng(seed)
     J = 31
@@ -114,7 +114,7 @@ def test_matches_naive_loop_on_random_31_joint_tree(seed):
     np.testing.assert_allclose(t, t_ref, atol=1e-12)
     # A_j maps the rest head to the posed head, and world_transforms agrees.
     np.testing.assert_allclose(np.einsum("jab,jb->ja", A[:, :3, :3], h) + A[:, :3, 3], t, atol=1e-12)
-    G, t2 = world_transforms(parents, R, h, trans)
+    G, t2 = jax.jit(world_transforms, static_argnums=0)(parents, R, h, trans)
     np.testing.assert_allclose(G, A[:, :3, :3], atol=1e-12)
     np.testing.assert_allclose(t2, t, atol=1e-12)
 
@@ -208,7 +208,7 @@ def test_gradient_through_fk_at_zero_pose_is_finite():
 
 def test_float32_dtype_preserved():
     parents = (-1, 0)
-    A, t = forward_kinematics(
+    A, t = fk(
         parents, jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (2, 3, 3)), jnp.zeros((2, 3), jnp.float32),
         jnp.zeros(3, jnp.float32),
     )
