@@ -231,8 +231,8 @@ def landmark_table(template: np.ndarray, faces: np.ndarray, joints: dict[str, np
     sock = face_front & (V[:, 0] < -0.015) & (V[:, 0] > -0.06) & (N[:, 1] > 0.3) & (np.abs(V[:, 2] - zsel) < 0.02)
     eye = V[sock].mean(0)
     eye_low = V[sock, 2].min()
-    put("Rt. Infraorbitale", c.win(head & (N[:, 1] < 0), _ANT, x=eye[0], z=eye_low - 0.006, h=4e-3),
-        "most anterior vertex 6 mm below the lowest point of the right eye socket, in the eye-centre column "
+    put("Rt. Infraorbitale", c.win(head & (N[:, 1] < 0), _ANT, x=eye[0], z=eye[2] - 0.012, h=4e-3),
+        "most anterior vertex 12 mm below the right eye-socket centroid, in the eye-centre column "
         "(eye socket = backward-facing face vertices 1.5-6 cm right of the midline within 2 cm of Sellion height)")
     # ear: laterally protruding head vertices between nose-tip and brow height, behind the face
     band = head & (V[:, 2] > zn - 0.03) & (V[:, 2] < V[glab, 2]) & (V[:, 0] < 0)
