@@ -92,8 +92,13 @@ def toy_basis(verts: np.ndarray, n_components: int, seed: int = 0):
         f = f + 0.05 * rng.normal(size=f.shape) * np.abs(f).max()
         f = f - f.mean(axis=0)
         fields.append(f.reshape(-1))
-    q, _ = np.linalg.qr(np.stack(fields, axis=1))
-    return q[:, :n_components].T.reshape(n_components, -1, 3)
+    # Keep the deformations orthogonal to the rigid motions at the mean (3 translations, 3
+    # infinitesimal rotations), so that rigid alignment cannot absorb any shape variation.
+    centred = verts - verts.mean(axis=0)
+    rigid = [np.tile(np.eye(3)[a], (verts.shape[0], 1)).reshape(-1) for a in range(3)]
+    rigid += [np.cross(np.eye(3)[a], centred).reshape(-1) for a in range(3)]
+    q, _ = np.linalg.qr(np.stack(rigid + fields, axis=1))
+    return q[:, 6 : 6 + n_components].T.reshape(n_components, -1, 3)
 
 
 def make_toy_model(

@@ -112,9 +112,11 @@ def procrustes_align(
     meshes = jnp.asarray(meshes)
     if reference is not None:
         check_array(reference, "reference", (dims["V"], 3))
-        return _align_to(meshes, jnp.asarray(reference, dtype=meshes.dtype), bool(scale))
-    ref = meshes[0] - meshes[0].mean(0)
-    return _gpa(meshes, ref, bool(scale), int(n_iter), float(tol))
+        transforms, aligned = _align_to(meshes, jnp.asarray(reference, dtype=meshes.dtype), bool(scale))
+    else:
+        ref = meshes[0] - meshes[0].mean(0)
+        transforms, aligned = _gpa(meshes, ref, bool(scale), int(n_iter), float(tol))
+    return aligned, transforms
 
 
 # --------------------------------------------------------------------------------------------------
@@ -433,6 +435,9 @@ def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_si
     c = coeffs - m
     cov = c.T @ c / coeffs.shape[0]
     lam, u = jnp.linalg.eigh(cov)
+    # Canonical eigenvector signs (largest-magnitude entry positive), so samples are reproducible.
+    pivot = jnp.take_along_axis(u, jnp.argmax(jnp.abs(u), axis=0)[None], axis=0)[0]
+    u = u * jnp.where(pivot < 0, -1.0, 1.0)
     samples = m + (z * jnp.sqrt(jnp.maximum(lam, 0.0))) @ u.T  # (S, m_max)
 
     def nearest(b):

@@ -1,0 +1,531 @@
+"""Tests for the S-SCAPE subpackage (model, learning, quality measures, serialisation, MPII I/O)."""
+
+import json
+import os
+import zipfile
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+from bodyprior._kinematics import Similarity
+from bodyprior._rotations import axis_angle_to_matrix, matrix_to_rotation
+from bodyprior.sscape import (
+    FORMAT_NAME,
+    SScapeModel,
+    compactness,
+    evaluate,
+    generalization,
+    humanshape_pose,
+    learn,
+    load_model,
+    load_mpii_humanshape,
+    procrustes_align,
+    rest_joints,
+    save_model,
+    shape_vertices,
+    specificity,
+    truncate,
+    write_mpii_humanshape,
+)
+
+from _toybody import make_toy_model
+
+
+_evaluate = eqx.filter_jit(evaluate)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return make_toy_model(5)
+
+
+def _random_rotation(key):
+    return axis_angle_to_matrix(jr.normal(key, (3,)))
+
+
+def _low_rank_meshes(model, key, n=40, rigid=True):
+    """Meshes drawn from the model's shape space (coefficients of zero sample mean), each moved by a
+    random rigid motion."""
+    k1, k2, k3 = jr.split(key, 3)
+    coeffs = jr.normal(k1, (n, model.n_components))
+    coeffs = coeffs - coeffs.mean(0)
+    meshes = jax.vmap(lambda c: shape_vertices(model, c))(coeffs)
+    if rigid:
+        rots = jax.vmap(_random_rotation)(jr.split(k2, n))
+        trans = jr.normal(k3, (n, 3))
+        meshes = jnp.einsum("nij,nvj->nvi", rots, meshes) + trans[:, None]
+    return meshes, coeffs
+
+
+# ------------------------------------------------------------------------------------------------
+# model and evaluate
+
+
+def test_zero_pose_zero_shape_is_mean(model):
+    v, j = _evaluate(model, jnp.zeros(5), jnp.zeros((4, 3)))
+    np.testing.assert_allclose(v, model.mean, atol=1e-12)
+    np.testing.assert_allclose(j, rest_joints(model, model.mean), atol=1e-12)
+    # Fewer coefficients than components, and the method form.
+    v2, _ = _evaluate(model, jnp.zeros(2), jnp.zeros((4, 3)))
+    np.testing.assert_allclose(v2, model.mean, atol=1e-12)
+
+
+def test_shape_coefficients(model, getkey):
+    c = jr.normal(getkey(), (3,))
+    expected = model.mean + sum(c[k] * model.stddev[k] * model.basis[k] for k in range(3))
+    np.testing.assert_allclose(shape_vertices(model, c), expected, atol=1e-12)
+    v, _ = _evaluate(model, c, jnp.zeros((4, 3)))
+    np.testing.assert_allclose(v, expected, atol=1e-12)
+    # basis is orthonormal in the flattened space
+    b = model.basis.reshape(model.n_components, -1)
+    np.testing.assert_allclose(b @ b.T, np.eye(model.n_components), atol=1e-12)
+
+
+def test_joints_follow_shape(model, getkey):
+    c = 3 * jr.normal(getkey(), (5,))
+    verts = shape_vertices(model, c)
+    _, joints = _evaluate(model, c, jnp.zeros((4, 3)))
+    ring = verts[model.joint_regressor_indices[2]]
+    np.testing.assert_allclose(joints[2], ring.mean(0), atol=1e-12)
+
+
+@pytest.mark.parametrize("rep", ["matrix", "quaternion", "sixd", "euler_ZYX"])
+def test_pose_representations_agree(model, getkey, rep):
+    aa = 0.5 * jr.normal(getkey(), (4, 3))
+    c = jr.normal(getkey(), (5,))
+    ref = _evaluate(model, c, aa)
+    mats = jax.vmap(axis_angle_to_matrix)(aa)
+    other = jax.vmap(lambda m: matrix_to_rotation(m, rep))(mats)
+    out = _evaluate(model, c, other, pose_rep=rep)
+    for a, b in zip(ref, out):
+        np.testing.assert_allclose(a, b, atol=1e-10)
+
+
+def test_rigid_transform_commutes(model, getkey):
+    c = jr.normal(getkey(), (5,))
+    pose = 0.4 * jr.normal(getkey(), (4, 3))
+    sim = Similarity.from_scale(_random_rotation(getkey()), jr.normal(getkey(), (3,)), 1.3)
+    v, j = _evaluate(model, c, pose)
+    vt, jt = _evaluate(model, c, pose, sim)
+    np.testing.assert_allclose(vt, sim.apply(v), atol=1e-12)
+    np.testing.assert_allclose(jt, sim.apply(j), atol=1e-12)
+    # root translation is a pure translation
+    vr, jr_ = _evaluate(model, c, pose, root_translation=jnp.array([0.1, -0.2, 0.3]))
+    np.testing.assert_allclose(vr - v, jnp.broadcast_to(jnp.array([0.1, -0.2, 0.3]), v.shape), atol=1e-12)
+
+
+def test_pose_moves_only_distal_segments(model):
+    pose = jnp.zeros((4, 3)).at[3].set(jnp.array([1.0, 0.0, 0.0]))
+    v, j = _evaluate(model, jnp.zeros(5), pose)
+    w = np.zeros((model.n_vertices, model.n_joints))
+    np.add.at(w, (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)), model.skin_weights)
+    untouched = w[:, 3] == 0
+    np.testing.assert_allclose(v[untouched], model.mean[untouched], atol=1e-12)
+    assert float(jnp.abs(v - model.mean).max()) > 0.05
+    np.testing.assert_allclose(j, rest_joints(model, model.mean), atol=1e-12)  # joint 3 pivots in place
+
+
+def test_jit_vmap_batch(model, getkey):
+    f = eqx.filter_jit(evaluate)
+    cs = jr.normal(getkey(), (8, 5))
+    poses = 0.3 * jr.normal(getkey(), (8, 4, 3))
+    vb, jb = eqx.filter_jit(eqx.filter_vmap(lambda c, p: evaluate(model, c, p)))(cs, poses)
+    assert vb.shape == (8, model.n_vertices, 3) and jb.shape == (8, 4, 3)
+    v3, j3 = f(model, cs[3], poses[3])
+    np.testing.assert_allclose(vb[3], v3, atol=1e-12)
+    np.testing.assert_allclose(jb[3], j3, atol=1e-12)
+
+
+def test_no_recompilation(model, getkey):
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(m, c, p):
+        return evaluate(m, c, p)
+
+    f(model, jr.normal(getkey(), (5,)), jr.normal(getkey(), (4, 3)))
+    f(model, jr.normal(getkey(), (5,)), jr.normal(getkey(), (4, 3)))
+    f(model, jr.normal(getkey(), (5,)), jr.normal(getkey(), (4, 3)))
+
+
+def test_gradients_match_finite_differences(model, getkey):
+    c0 = jr.normal(getkey(), (5,))
+    p0 = 0.5 * jr.normal(getkey(), (4, 3))
+    target = jr.normal(getkey(), (model.n_vertices, 3))
+
+    def loss(c, p):
+        v, j = evaluate(model, c, p)
+        return jnp.sum(v * target) + jnp.sum(j**2)
+
+    loss = jax.jit(loss)
+    gc, gp = jax.jit(jax.grad(loss, argnums=(0, 1)))(c0, p0)
+    assert np.all(np.isfinite(gc)) and np.all(np.isfinite(gp))
+    eps = 1e-6
+    dc, dp = jr.normal(getkey(), c0.shape), jr.normal(getkey(), p0.shape)
+    fd = (loss(c0 + eps * dc, p0 + eps * dp) - loss(c0 - eps * dc, p0 - eps * dp)) / (2 * eps)
+    np.testing.assert_allclose(jnp.sum(gc * dc) + jnp.sum(gp * dp), fd, rtol=1e-6, atol=1e-7)
+    # finite gradient at the zero pose (degenerate axis-angle)
+    _, gp0 = jax.jit(jax.grad(loss, argnums=(0, 1)))(c0, jnp.zeros((4, 3)))
+    assert np.all(np.isfinite(gp0))
+
+
+def test_input_validation(model):
+    with pytest.raises(ValueError, match="shape_coeffs"):
+        evaluate(model, jnp.zeros(6), jnp.zeros((4, 3)))
+    with pytest.raises(ValueError, match="pose"):
+        evaluate(model, jnp.zeros(5), jnp.zeros((3, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        evaluate(model, jnp.full(5, jnp.nan), jnp.zeros((4, 3)))
+    with pytest.raises(ValueError, match="pose"):
+        evaluate(model, jnp.zeros(5), jnp.zeros((4, 3)).at[0, 0].set(jnp.inf))
+    with pytest.raises(ValueError, match="pose_rep"):
+        evaluate(model, jnp.zeros(5), jnp.zeros((4, 3)), pose_rep="euler")
+    with pytest.raises(ValueError, match="root_translation"):
+        evaluate(model, jnp.zeros(5), jnp.zeros((4, 3)), root_translation=jnp.zeros(2))
+    with pytest.raises(ValueError, match="transform"):
+        evaluate(model, jnp.zeros(5), jnp.zeros((4, 3)), transform=jnp.eye(4))
+    with pytest.raises(ValueError, match="basis"):
+        eqx.tree_at(lambda m: m.basis, model, model.basis[:, :10]).__check_init__()
+    with pytest.raises(ValueError, match="skin_indices"):
+        SScapeModel(**{f: getattr(model, f) for f in _FIELDS if f != "skin_indices"},
+                    skin_indices=model.skin_indices + 10)
+    with pytest.raises(ValueError, match="joint_names"):
+        SScapeModel(**{f: getattr(model, f) for f in _FIELDS if f != "joint_names"}, joint_names=("a",))
+
+
+_FIELDS = [
+    "mean", "basis", "stddev", "explained_variance", "faces", "joint_regressor_indices",
+    "joint_regressor_weights", "skin_indices", "skin_weights", "parents", "joint_names",
+]  # fmt: skip
+
+
+def test_truncate(model):
+    t = truncate(model, 2)
+    assert t.n_components == 2 and t.stddev.shape == (2,) and t.explained_variance.shape == (2,)
+    np.testing.assert_allclose(t.basis, model.basis[:2])
+    with pytest.raises(ValueError, match="n_components"):
+        truncate(model, 6)
+
+
+# ------------------------------------------------------------------------------------------------
+# learning
+
+
+def _principal_angles(a, b):
+    qa, _ = np.linalg.qr(np.asarray(a).reshape(a.shape[0], -1).T)
+    qb, _ = np.linalg.qr(np.asarray(b).reshape(b.shape[0], -1).T)
+    s = np.linalg.svd(qa.T @ qb, compute_uv=False)
+    return np.arccos(np.clip(s, -1, 1))
+
+
+def test_procrustes_recovers_rigid_motion(model, getkey):
+    meshes, _ = _low_rank_meshes(model, getkey(), n=10)
+    aligned, t = procrustes_align(meshes)
+    # aligned[i] = t[i](meshes[i]) and all aligned meshes share one frame: the aligned set, re-aligned,
+    # is unchanged.
+    np.testing.assert_allclose(jax.vmap(lambda s, x: s.apply(x))(t, meshes), aligned, atol=1e-10)
+    again, _ = procrustes_align(aligned, reference=aligned.mean(0))
+    np.testing.assert_allclose(again, aligned, atol=1e-6)
+    np.testing.assert_allclose(aligned.mean(axis=(0, 1)), 0, atol=1e-10)
+    # exact copies under rigid motion align onto each other
+    base = model.mean
+    rots = jax.vmap(_random_rotation)(jr.split(getkey(), 5))
+    copies = jnp.einsum("nij,vj->nvi", rots, base) + jr.normal(getkey(), (5, 1, 3))
+    al, _ = procrustes_align(copies)
+    np.testing.assert_allclose(al - al[0], 0, atol=1e-9)
+
+
+def test_learn_recovers_subspace_and_variances(model, getkey):
+    n = 100
+    meshes, coeffs = _low_rank_meshes(model, getkey(), n=n)
+    learned = learn(meshes, model.faces, n_components=5, template=model)
+    angles = _principal_angles(learned.basis, model.basis)
+    assert angles.max() < 1e-6  # arccos resolves ~1e-8 near 0
+    # Sample variances of the generating coefficients, projected onto the learned directions.
+    expected = np.sort(np.linalg.eigvalsh(np.cov(np.asarray(coeffs * model.stddev).T)))[::-1]
+    np.testing.assert_allclose(learned.stddev**2, expected, rtol=1e-6)
+    np.testing.assert_allclose(learned.explained_variance.sum(), 1.0, atol=1e-8)
+    # Frame and rig come from the template: the learned mean sits on the template mean.
+    np.testing.assert_allclose(learned.mean, model.mean, atol=1e-9)
+    assert learned.parents == model.parents
+    np.testing.assert_array_equal(learned.skin_indices, model.skin_indices)
+    # 5 true components out of n-1 possible: the rest explain nothing.
+    full = learn(meshes, model.faces, template=model)
+    assert full.n_components == n - 1
+    np.testing.assert_allclose(full.explained_variance[5:], 0, atol=1e-10)
+
+
+def test_learn_explained_variance_selection(model, getkey):
+    meshes, _ = _low_rank_meshes(model, getkey(), n=30, rigid=False)
+    full = learn(meshes, model.faces, align=False)
+    cum = np.cumsum(np.asarray(full.explained_variance))
+    for thr in (0.5, 0.9, 0.99, 1.0):
+        m = learn(meshes, model.faces, explained_variance=thr, align=False)
+        k = m.n_components
+        assert cum[k - 1] >= thr - 1e-9 and (k == 1 or cum[k - 2] < thr)
+    # no rig given: one root joint at the centroid carrying every vertex
+    assert full.parents == (-1,) and full.skin_weights.shape == (model.n_vertices, 1)
+    with pytest.raises(ValueError, match="at most one"):
+        learn(meshes, model.faces, n_components=2, explained_variance=0.9)
+    with pytest.raises(ValueError, match="n_components"):
+        learn(meshes, model.faces, n_components=30)
+    with pytest.raises(ValueError, match="explained_variance"):
+        learn(meshes, model.faces, explained_variance=1.5)
+    with pytest.raises(ValueError, match="meshes"):
+        learn(meshes[:1], model.faces)
+
+
+# ------------------------------------------------------------------------------------------------
+# quality measures
+
+
+def test_compactness(model):
+    c = compactness(model, n_samples=100)
+    np.testing.assert_allclose(c.ratio, np.cumsum(model.explained_variance))
+    np.testing.assert_allclose(c.std_error, np.sqrt(2 / 100) * np.cumsum(model.stddev**2))
+    assert np.all(np.diff(c.ratio) >= 0)
+
+
+def test_generalization(model, getkey):
+    meshes, _ = _low_rank_meshes(model, getkey(), n=16, rigid=False)
+    noisy = meshes + 1e-3 * jr.normal(getkey(), meshes.shape)
+    g = generalization(noisy, [0, 1, 2, 3, 5, 8], chunk_size=4)
+    assert g.errors.shape == (16, 6)
+    assert np.all(np.diff(np.asarray(g.mean)) < 0)
+    # Noise-free data of rank 5: leave-one-out reconstruction with 5 components is exact.
+    g0 = generalization(meshes, [2, 5])
+    assert float(g0.mean[1]) < 1e-9 < float(g0.mean[0])
+    # Brute-force check of one left-out mesh against a direct SVD.
+    x = np.asarray(noisy).reshape(16, -1)
+    others = np.delete(x, 3, axis=0)
+    mu = others.mean(0)
+    _, _, vt = np.linalg.svd(others - mu, full_matrices=False)
+    r = (x[3] - mu) - vt[:2].T @ (vt[:2] @ (x[3] - mu))
+    np.testing.assert_allclose(g.errors[3, 2], np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8)
+    gs = generalization(noisy, 3, n_train=8)
+    assert gs.errors.shape == (16, 1)
+    with pytest.raises(ValueError, match="n_components"):
+        generalization(noisy, [15])
+
+
+def test_specificity(model, getkey):
+    meshes, _ = _low_rank_meshes(model, getkey(), n=30, rigid=False)
+    learned = learn(meshes, model.faces, align=False)
+    key = getkey()
+    s = specificity(learned, meshes, [0, 1, 3, 5], key=key, n_samples=64, chunk_size=16)
+    assert s.distances.shape == (64, 4)
+    # M = 0: every sample is the mean
+    d_mean = jnp.min(jax.vmap(lambda x: jnp.mean(jnp.linalg.norm(x - learned.mean, axis=-1)))(meshes))
+    np.testing.assert_allclose(s.distances[:, 0], d_mean, rtol=1e-10)
+    # Brute force for a few samples: ML Gaussian of the projected training data, nearest neighbour.
+    x = np.asarray(meshes).reshape(30, -1)
+    b = np.asarray(learned.basis).reshape(learned.n_components, -1)[:5]
+    coeffs = (x - np.asarray(learned.mean).reshape(-1)) @ b.T
+    lam, u = np.linalg.eigh(np.cov(coeffs.T, bias=True))
+    u = u * np.where(u[np.argmax(np.abs(u), axis=0), np.arange(5)] < 0, -1.0, 1.0)
+    z = np.asarray(jr.normal(key, (64, 5)))
+    samples = coeffs.mean(0) + (z * np.sqrt(np.maximum(lam, 0))) @ u.T
+    for i in range(0, 64, 21):
+        for col, m in enumerate((0, 1, 3, 5)):
+            y = np.asarray(learned.mean).reshape(-1) + samples[i, :m] @ b[:m]
+            d = np.linalg.norm((x - y).reshape(30, -1, 3), axis=-1).mean(-1)
+            np.testing.assert_allclose(s.distances[i, col], d.min(), rtol=1e-8)
+    # A sample that is a training shape is at distance zero: a model whose samples all coincide with
+    # the one training mesh it was built from.
+    one = learn(jnp.stack([meshes[0], meshes[0]]), model.faces, align=False)
+    s1 = specificity(one, meshes[:1], [0, 1], key=key, n_samples=4)
+    np.testing.assert_allclose(s1.mean, 0, atol=1e-12)
+    with pytest.raises(ValueError, match="n_components"):
+        specificity(learned, meshes, [learned.n_components + 1], key=getkey())
+
+
+# ------------------------------------------------------------------------------------------------
+# serialisation
+
+
+def test_save_load_round_trip(model, tmp_path):
+    path = tmp_path / "toy.sscape"
+    save_model(path, model)
+    loaded = load_model(path)
+    assert loaded.parents == model.parents and loaded.joint_names == model.joint_names
+    for f in _FIELDS[:9]:
+        a, b = np.asarray(getattr(model, f)), np.asarray(getattr(loaded, f))
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f
+    assert sorted(os.listdir(tmp_path)) == ["toy.sscape"]  # no temp files left behind
+    save_model(path, truncate(model, 2))  # overwrite atomically
+    assert load_model(path).n_components == 2
+    assert sorted(os.listdir(tmp_path)) == ["toy.sscape"]
+
+
+def _rewrite(path, out, *, meta=None, payload=None):
+    with zipfile.ZipFile(path) as zf:
+        m, p = zf.read("metadata.json"), zf.read("leaves.eqx")
+    if meta is not None:
+        d = json.loads(m)
+        meta(d)
+        m = json.dumps(d).encode()
+    with zipfile.ZipFile(out, "w") as zf:
+        zf.writestr("metadata.json", m)
+        zf.writestr("leaves.eqx", p if payload is None else payload(p))
+
+
+def test_load_rejects_bad_files(model, tmp_path):
+    path = tmp_path / "toy.sscape"
+    save_model(path, model)
+    bad = tmp_path / "bad.sscape"
+    _rewrite(path, bad, meta=lambda d: d.update(version=2))
+    with pytest.raises(ValueError, match="version"):
+        load_model(bad)
+    _rewrite(path, bad, meta=lambda d: d.update(format="other.format"))
+    with pytest.raises(ValueError, match="format"):
+        load_model(bad)
+    _rewrite(path, bad, payload=lambda p: p[:100] + bytes([p[100] ^ 0xFF]) + p[101:])
+    with pytest.raises(ValueError, match="checksum"):
+        load_model(bad)
+    _rewrite(path, bad, meta=lambda d: d["leaves"]["stddev"].update(shape=[4]))
+    with pytest.raises(ValueError, match="stddev"):
+        load_model(bad)
+    _rewrite(path, bad, meta=lambda d: d["leaves"]["stddev"].update(dtype="<f4"))
+    with pytest.raises(ValueError, match="stddev"):
+        load_model(bad)
+    _rewrite(path, bad, meta=lambda d: d.update(parents=[-1, 0]))
+    with pytest.raises(ValueError, match="parents"):
+        load_model(bad)
+    bad.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ValueError):
+        load_model(bad)
+    with pytest.raises(ValueError, match="no such file"):
+        load_model(tmp_path / "missing.sscape")
+
+
+def test_atomic_write_failure_leaves_no_temp(model, tmp_path, monkeypatch):
+    path = tmp_path / "toy.sscape"
+    save_model(path, model)
+    before = path.read_bytes()
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        save_model(path, truncate(model, 1))
+    assert sorted(os.listdir(tmp_path)) == ["toy.sscape"]
+    assert path.read_bytes() == before
+
+
+# ------------------------------------------------------------------------------------------------
+# MPII humanshape format
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    # 6 x 8 rings + 2 caps = 50 vertices, 3 components, 4 joints
+    return make_toy_model(3, n_around=6, n_rings=8, n_joints=4, seed=1)
+
+
+def _overlap_regressor(model):
+    w = np.zeros((model.n_vertices, model.n_joints))
+    np.add.at(w, (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)),
+              np.asarray(model.skin_weights))
+    rows = []
+    for j, p in enumerate(model.parents):
+        r = w[:, j] if p < 0 else np.minimum(w[:, j], w[:, p])
+        rows.append(r / r.sum())
+    return np.stack(rows)
+
+
+def test_mpii_round_trip(tiny, tmp_path):
+    axes = np.eye(3)[[0, 0, 1, 2]] * 1.0
+    write_mpii_humanshape(tmp_path, tiny, axes=axes)
+    assert sorted(os.listdir(tmp_path)) == ["evalues.mat", "evectors.mat", "meanShape.mat", "model.dat"]
+    with open(tmp_path / "model.dat") as f:
+        assert f.readline().split() == ["50", str(tiny.faces.shape[0]), "4", "2"]
+    loaded, rig = load_mpii_humanshape(tmp_path, center=False, return_rig=True)
+    assert loaded.n_vertices == 50 and loaded.n_components == 3 and loaded.n_joints == 4
+    np.testing.assert_allclose(loaded.mean, tiny.mean, atol=1e-12)
+    np.testing.assert_allclose(loaded.basis, tiny.basis, atol=1e-12)
+    np.testing.assert_allclose(loaded.stddev, tiny.stddev, rtol=1e-12)
+    np.testing.assert_array_equal(loaded.faces, tiny.faces)
+    assert loaded.parents == tiny.parents
+    np.testing.assert_array_equal(rig.ids, [1, 2, 3, 4])
+    np.testing.assert_allclose(rig.axes, axes)
+    # Skin weights, densified, agree; the regressor is humanshape's overlap rule.
+    def dense(idx, w, nj):
+        d = np.zeros((idx.shape[0], nj))
+        np.add.at(d, (np.arange(idx.shape[0])[:, None], np.asarray(idx)), np.asarray(w))
+        return d
+
+    np.testing.assert_allclose(dense(loaded.skin_indices, loaded.skin_weights, 4),
+                               dense(tiny.skin_indices, tiny.skin_weights, 4), atol=1e-8)
+    np.testing.assert_allclose(dense(loaded.joint_regressor_indices, loaded.joint_regressor_weights, 50),
+                               _overlap_regressor(tiny), atol=1e-8)
+    # centred load (humanshape's frame), truncated to 2 components, mm -> m
+    centred = load_mpii_humanshape(tmp_path, n_components=2)
+    np.testing.assert_allclose(centred.mean.mean(0), 0, atol=1e-9)
+    assert centred.n_components == 2
+    np.testing.assert_allclose(centred.explained_variance, tiny.stddev[:2] ** 2 / np.sum(tiny.stddev**2))
+
+
+def test_humanshape_pose_mapping(tiny, tmp_path, getkey):
+    axes = np.array([[0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    write_mpii_humanshape(tmp_path, tiny, axes=axes)
+    model, rig = load_mpii_humanshape(tmp_path, return_rig=True)
+    vec = jnp.concatenate([0.3 * jr.normal(getkey(), (3,)), 100 * jr.normal(getkey(), (3,)),
+                           jnp.array([0.7]), 0.5 * jr.normal(getkey(), (3,)), jnp.array([1.2])])
+    pose, sim = humanshape_pose(rig, vec)
+    assert pose.shape == (4, 3)
+    np.testing.assert_allclose(pose[0], 0)  # root: zero axis, dummy angle
+    np.testing.assert_allclose(pose[2], vec[8] * axes[2])
+    # Product of exponentials of rest-frame hinge twists (humanshape's kinematics), by hand.
+    c = jnp.zeros(3)
+    rest = shape_vertices(model, c)
+    q = rest_joints(model, rest)
+    ms = []
+    for j in range(4):
+        rj = axis_angle_to_matrix(pose[j])
+        g = jnp.eye(4).at[:3, :3].set(rj).at[:3, 3].set((jnp.eye(3) - rj) @ q[j])
+        ms.append(g if j == 0 else ms[model.parents[j]] @ g)
+    w = np.zeros((50, 4))
+    np.add.at(w, (np.arange(50)[:, None], np.asarray(model.skin_indices)), np.asarray(model.skin_weights))
+    hom = jnp.concatenate([rest, jnp.ones((50, 1))], axis=1)
+    blended = jnp.einsum("vj,jab,vb->va", w, jnp.stack(ms), hom)[:, :3]
+    s = vec[-1]
+    expected = s * (blended @ axis_angle_to_matrix(vec[:3]).T + vec[3:6] * 1e-3)
+    v, _ = _evaluate(model, c, pose, sim)
+    np.testing.assert_allclose(v, expected, atol=1e-12)
+    with pytest.raises(ValueError, match="pose_vector"):
+        humanshape_pose(rig, jnp.zeros(5))
+
+
+def test_mpii_malformed(tiny, tmp_path):
+    write_mpii_humanshape(tmp_path, tiny)
+    dat = (tmp_path / "model.dat").read_text()
+    (tmp_path / "model.dat").write_text(dat[: len(dat) // 2])
+    with pytest.raises(ValueError, match="truncated"):
+        load_mpii_humanshape(tmp_path)
+    (tmp_path / "model.dat").write_text(dat.replace("50 ", "x50 ", 1))
+    with pytest.raises(ValueError, match="non-numeric"):
+        load_mpii_humanshape(tmp_path)
+    (tmp_path / "model.dat").write_text(dat)
+    import scipy.io
+
+    scipy.io.savemat(tmp_path / "evectors.mat", {"evectors": np.ones((3, 10))})
+    with pytest.raises(ValueError, match="evectors"):
+        load_mpii_humanshape(tmp_path)
+    scipy.io.savemat(tmp_path / "evectors.mat", {"wrong_name": np.ones((3, 150))})
+    with pytest.raises(ValueError, match="no variable"):
+        load_mpii_humanshape(tmp_path)
+    (tmp_path / "evectors.mat").write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 600)
+    with pytest.raises(ValueError, match="v7.3|HDF5"):
+        load_mpii_humanshape(tmp_path)
+    (tmp_path / "evectors.mat").write_bytes(b"garbage" * 20)
+    with pytest.raises(ValueError, match="evectors.mat"):
+        load_mpii_humanshape(tmp_path)
+    os.remove(tmp_path / "evectors.mat")
+    with pytest.raises(ValueError, match="Missing"):
+        load_mpii_humanshape(tmp_path)
+    with pytest.raises(ValueError, match="directory"):
+        load_mpii_humanshape(tmp_path / "nope")
