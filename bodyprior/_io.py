@@ -1,10 +1,12 @@
 """Atomic file writes and OBJ/PLY mesh input/output.
 
-Everything here is host-side NumPy. Writers format whole arrays at once (`tobytes` for binary PLY, one
+Everything here is host-side NumPy. Writers format whole arrays at once (`tobytes` for binary PLY,
+one
 `%`-format over the flattened array for text), so writing a 13k-vertex body takes a few milliseconds
 (binary PLY ~1 ms, OBJ ~15 ms on one core) and thousands of bodies can be written in a loop.
 
-Readers are small, self-contained parsers (no trimesh processing, so vertex order is preserved exactly)
+Readers are small, self-contained parsers (no trimesh processing, so vertex order is preserved
+exactly)
 that validate what they read and raise `ValueError` naming the file.
 """
 
@@ -34,9 +36,9 @@ __all__ = [
 ]
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Atomic writes
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _fsync_dir(directory: str) -> None:
@@ -62,12 +64,17 @@ def _default_mode() -> int:
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | os.PathLike, mode: str = "wb", *, encoding: str = "utf-8") -> Iterator[IO]:
+def atomic_open(
+    path: str | os.PathLike, mode: str = "wb", *, encoding: str = "utf-8"
+) -> Iterator[IO]:
     """Opens a temporary file next to `path`; on a clean exit it replaces `path` atomically.
 
-    The temporary file lives in the same directory (so `os.replace` is a rename on one filesystem), is
-    flushed and `fsync`-ed before the rename, and gets the usual permissions (`0o666` minus the umask).
-    If the body of the `with` block raises, the temporary file is deleted and `path` is left untouched
+    The temporary file lives in the same directory (so `os.replace` is a rename on one filesystem),
+    is
+    flushed and `fsync`-ed before the rename, and gets the usual permissions (`0o666` minus the
+    umask).
+    If the body of the `with` block raises, the temporary file is deleted and `path` is left
+    untouched
     (either absent or with its previous contents). Readers never see a half-written file.
 
     **Arguments:**
@@ -91,7 +98,9 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb", *, encoding: str = "u
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise ValueError(f"Cannot write {path!r}: directory {directory!r} does not exist.")
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(
+        dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp"
+    )
     try:
         kwargs = {} if mode == "wb" else {"encoding": encoding, "newline": "\n"}
         with os.fdopen(fd, mode, **kwargs) as f:
@@ -124,29 +133,31 @@ def _json_default(obj: Any):
 
 
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Writes `obj` as JSON to `path` atomically, with sorted keys, 2-space indent and a final newline.
+    """Writes `obj` as JSON to `path` atomically, with sorted keys, 2-space indent and a final
+    newline.
 
     NumPy/JAX scalars and arrays are converted with `.item()` / `.tolist()`, path objects with
     `os.fspath`.
 
     **NaN policy:** non-finite floats (NaN, ±inf) raise `ValueError` — they are not valid JSON and
-    silently turning them into `null` would hide bugs. Replace them explicitly (e.g. with `None`) first.
+    silently turning them into `null` would hide bugs. Replace them explicitly (e.g. with `None`)
+    first.
     Nothing is written when serialisation fails.
     """
     try:
         text = json.dumps(obj, sort_keys=True, indent=2, allow_nan=False, default=_json_default)
     except ValueError as e:
         raise ValueError(
-            f"Cannot write {os.fspath(path)!r}: `obj` contains NaN or infinite values, which are not "
-            f"valid JSON ({e}). Replace them (e.g. with None) before writing."
+            f"Cannot write {os.fspath(path)!r}: `obj` contains NaN or infinite values, "
+            f"which are not valid JSON ({e}). Replace them (e.g. with None) before writing."
         ) from None
     with atomic_open(path, "w") as f:
         f.write(text + "\n")
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Writers
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _check_mesh_args(vertices, faces, normals):
@@ -165,7 +176,9 @@ def _check_mesh_args(vertices, faces, normals):
 
 
 def _format_rows(fmt_row: str, arr: np.ndarray) -> str:
-    """Formats every row of a 2-D array with `fmt_row` in one `%` operation (no per-row Python loop)."""
+    """Formats every row of a 2-D array with `fmt_row` in one `%` operation (no per-row Python
+    loop).
+    """
     if arr.shape[0] == 0:
         return ""
     return (fmt_row * arr.shape[0]) % tuple(arr.ravel().tolist())
@@ -178,9 +191,11 @@ def write_obj(path: str | os.PathLike, vertices, faces=None, *, normals=None) ->
 
     - `path`: destination file.
     - `vertices`: float array of shape `(V, 3)`.
-    - `faces`: integer array of shape `(F, 3)` with 0-based indices (written 1-based), or `None` for a
+    - `faces`: integer array of shape `(F, 3)` with 0-based indices (written 1-based), or `None` for
+      a
       point cloud.
-    - `normals`: optional per-vertex normals of shape `(V, 3)` (written as `vn`, faces as `f a//a ...`).
+    - `normals`: optional per-vertex normals of shape `(V, 3)` (written as `vn`, faces as `f a//a
+      ...`).
 
     Coordinates are written with 9 significant digits (float32 round-trips exactly).
     """
@@ -222,7 +237,11 @@ def write_ply(
     vertices, faces, normals = _check_mesh_args(vertices, faces, normals)
     ftype, fname = (np.float64, "double") if double else (np.float32, "float")
     nv = vertices.shape[0]
-    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", "comment bodyprior"]
+    header = [
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        "comment bodyprior",
+    ]
     header.append(f"element vertex {nv}")
     names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals is not None else [])
     header += [f"property {fname} {n}" for n in names]
@@ -250,9 +269,9 @@ def write_ply(
     atomic_write_bytes(path, data)
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Readers
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _fail(path: str, msg: str) -> ValueError:
@@ -316,7 +335,9 @@ def _read_obj(path: str, raw: bytes):
             if any(len(r) < 3 for r in vrows):
                 raise ValueError("a 'v' line has fewer than 3 coordinates")
             vertices = np.array([r[:3] for r in vrows], dtype=np.float64)
-        normals = np.array(" ".join(nlines).split(), dtype=np.float64).reshape(-1, 3) if nlines else None
+        normals = (
+            np.array(" ".join(nlines).split(), dtype=np.float64).reshape(-1, 3) if nlines else None
+        )
     except ValueError as e:
         raise _fail(path, f"malformed vertex data ({e}).") from None
     faces = None
@@ -368,7 +389,12 @@ def _parse_ply_header(path: str, raw: bytes):
                 raise _fail(path, "PLY property before any element.")
             try:
                 if tok[1] == "list":
-                    prop = (tok[4], "list", _PLY_TYPES[tok[3]], _PLY_TYPES[tok[2]])  # (name, kind, item, count)
+                    prop = (
+                        tok[4],
+                        "list",
+                        _PLY_TYPES[tok[3]],
+                        _PLY_TYPES[tok[2]],
+                    )  # (name, kind, item, count)
                 else:
                     prop = (tok[2], "scalar", _PLY_TYPES[tok[1]], None)
             except (KeyError, IndexError):
@@ -443,9 +469,18 @@ def _read_ply(path: str, raw: bytes):
                 if not any(p[1] == "list" for p in props) and rows:
                     arr = np.array(" ".join(rows).split(), dtype=np.float64).reshape(len(rows), -1)
                     data[el["name"]] = {p[0]: arr[:, k] for k, p in enumerate(props)}
-                elif len(props) == 1 and rows and all(r.count(" ") == 3 for r in rows) and (
-                    arr := np.array(" ".join(rows).split(), dtype=np.float64).reshape(len(rows), -1)
-                ).shape[1] == 4 and np.all(arr[:, 0] == 3):  # fast path: triangle list only
+                elif (
+                    len(props) == 1
+                    and rows
+                    and all(r.count(" ") == 3 for r in rows)
+                    and (
+                        arr := np.array(" ".join(rows).split(), dtype=np.float64).reshape(
+                            len(rows), -1
+                        )
+                    ).shape[1]
+                    == 4
+                    and np.all(arr[:, 0] == 3)
+                ):  # fast path: triangle list only
                     data[el["name"]] = {props[0][0]: arr[:, 1:].astype(np.int64)}
                 else:
                     out: dict[str, list] = {p[0]: [] for p in props}
@@ -475,13 +510,17 @@ def _read_ply(path: str, raw: bytes):
     vertices = np.stack([np.asarray(vd[k], dtype=np.float64) for k in "xyz"], axis=1)
     normals = None
     if all(k in vd for k in ("nx", "ny", "nz")):
-        normals = np.stack([np.asarray(vd[k], dtype=np.float64) for k in ("nx", "ny", "nz")], axis=1)
+        normals = np.stack(
+            [np.asarray(vd[k], dtype=np.float64) for k in ("nx", "ny", "nz")], axis=1
+        )
     faces = None
     fd = data.get("face", {})
     key = next((k for k in ("vertex_indices", "vertex_index") if k in fd), None)
     if key is not None and len(fd[key]):
         f = fd[key]
-        faces = np.asarray(f, dtype=np.int64) if isinstance(f, np.ndarray) else _triangulate(f, path)
+        faces = (
+            np.asarray(f, dtype=np.int64) if isinstance(f, np.ndarray) else _triangulate(f, path)
+        )
     return _finish(path, vertices, faces, normals)
 
 
@@ -489,8 +528,10 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, n
     """Reads an OBJ or PLY mesh or point cloud.
 
     Supports OBJ (`v`, `vn`, `f` with `a`, `a/b`, `a//c`, `a/b/c` and negative indices; polygons are
-    fan-triangulated) and PLY (ASCII, binary little- and big-endian; `vertex` with `x y z` and optional
-    `nx ny nz`; optional `face` with `vertex_indices` lists, polygons fan-triangulated). Vertex order is
+    fan-triangulated) and PLY (ASCII, binary little- and big-endian; `vertex` with `x y z` and
+    optional
+    `nx ny nz`; optional `face` with `vertex_indices` lists, polygons fan-triangulated). Vertex
+    order is
     preserved exactly (no merging or reordering).
 
     **Arguments:**
@@ -514,4 +555,3 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, n
     if not raw.strip():
         raise _fail(p, "file is empty.")
     return _read_obj(p, raw) if ext == ".obj" else _read_ply(p, raw)
-

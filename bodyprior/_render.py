@@ -2,8 +2,10 @@
 
 Triangles are rasterised in chunks: every pixel centre inside each triangle's screen bounding box is
 generated at once with `np.repeat`, tested with affine edge functions, and the nearest fragment per
-pixel is kept with `np.maximum.at` (an unbuffered scatter-max, far faster than sorting). Shading is per-pixel Lambert on interpolated (area-weighted) vertex normals,
-with a key light, a weak fill light and ambient, plus optional supersampled anti-aliasing. Labels and
+pixel is kept with `np.maximum.at` (an unbuffered scatter-max, far faster than sorting). Shading is
+per-pixel Lambert on interpolated (area-weighted) vertex normals,
+with a key light, a weak fill light and ambient, plus optional supersampled anti-aliasing. Labels
+and
 colour bars use Pillow / matplotlib's Agg canvas only.
 
 Orthographic cameras, world frame Z up, body facing -Y (see `docs/architecture.md`):
@@ -44,22 +46,29 @@ _NAMED_VIEWS = {"front": (0.0, 0.0), "left": (90.0, 0.0), "side": (90.0, 0.0), "
 _MAX_FRAGMENTS = 1 << 20  # candidate pixels per rasterisation chunk (bounds peak memory, ~200 MB)
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Camera and rasteriser
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _camera_axes(view) -> np.ndarray:
-    """Returns a (3, 3) matrix whose rows are (image right, image up, towards camera) in world frame."""
+    """Returns a (3, 3) matrix whose rows are (image right, image up, towards camera) in world
+    frame.
+    """
     if isinstance(view, str):
         if view not in _NAMED_VIEWS:
-            raise ValueError(f"`view` must be one of {sorted(_NAMED_VIEWS)} or (azimuth, elevation), got {view!r}.")
+            raise ValueError(
+                f"`view` must be one of {sorted(_NAMED_VIEWS)} or (azimuth, elevation), "
+                f"got {view!r}."
+            )
         az, el = _NAMED_VIEWS[view]
     else:
         try:
             az, el = (float(a) for a in view)
         except (TypeError, ValueError):
-            raise ValueError(f"`view` must be a name or (azimuth_deg, elevation_deg), got {view!r}.") from None
+            raise ValueError(
+                f"`view` must be a name or (azimuth_deg, elevation_deg), got {view!r}."
+            ) from None
     az, el = np.deg2rad(az), np.deg2rad(el)
     to_cam = np.array([np.sin(az) * np.cos(el), -np.cos(az) * np.cos(el), np.sin(el)])
     right = np.array([np.cos(az), np.sin(az), 0.0])
@@ -90,7 +99,9 @@ def _check_size(size) -> tuple[int, int]:
 def _check_color(c, name) -> np.ndarray:
     c = np.asarray(c, dtype=np.float64)
     if c.shape != (3,) or not np.all((c >= 0) & (c <= 1)):
-        raise ValueError(f"`{name}` must be an RGB triple with values in [0, 1], got {c.tolist()!r}.")
+        raise ValueError(
+            f"`{name}` must be an RGB triple with values in [0, 1], got {c.tolist()!r}."
+        )
     return c
 
 
@@ -107,7 +118,7 @@ def _check_mesh(vertices, faces):
 
 
 def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (zero-area faces contribute nothing; isolated vertices get 0)."""
+    """Area-weighted vertex normals (zero-area faces add nothing; isolated vertices get 0)."""
     tri = vertices[faces]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
     n = np.zeros_like(vertices)
@@ -137,8 +148,12 @@ def _screen_transform(vertices, axes, size, fit):
     else:
         box = np.asarray(fit, dtype=np.float64)
         if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[1] < box[0]):
-            raise ValueError(f"`fit` must be None or world bounds of shape (2, 3) = [min, max], got {box!r}.")
-        corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+            raise ValueError(
+                f"`fit` must be None or world bounds of shape (2, 3) = [min, max], got {box!r}."
+            )
+        corners = np.array(
+            [[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        )
         cp = corners @ axes.T
         lo, hi = cp[:, :2].min(axis=0), cp[:, :2].max(axis=0)
     margin = 0.04
@@ -169,8 +184,10 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
     bw, bh = bx1 - bx0, by1 - by0
     keep = (np.abs(area) > 1e-12) & (bw > 0) & (bh > 0)  # drops degenerate and off-screen triangles
     tris = np.nonzero(keep)[0]
-    # Per-triangle affine coefficients: barycentrics l0, l1 and depth at pixel (bx0 + dx, by0 + dy) are
-    # D + a * dx + b * dy, with D evaluated at the bounding box's first pixel centre (no cancellation).
+    # Per-triangle affine coefficients: barycentrics l0, l1 and depth at pixel (bx0 + dx, by0 + dy)
+    # are
+    # D + a * dx + b * dy, with D evaluated at the bounding box's first pixel centre (no
+    # cancellation).
     x0, x1, x2, y0, y1, y2 = (q[tris] for q in (x0, x1, x2, y0, y1, y2))
     inv = 1.0 / area[tris]
     ox, oy = bx0[tris] + 0.5, by0[tris] + 0.5
@@ -213,7 +230,8 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
         Ti, dx, dy = T[inside], dx[inside], dy[inside]
         depth = Ti[:, 6] + Ti[:, 7] * dx + Ti[:, 8] * dy  # larger = nearer the camera
         pix = (Ti[:, 11] + dy * w + dx).astype(np.int64)
-        # Z-buffer: per-pixel maximum with an unbuffered ufunc (no sort); fragments that reach it win.
+        # Z-buffer: per-pixel maximum with an unbuffered ufunc (no sort); fragments that reach it
+        # win.
         np.maximum.at(best_z, pix, depth)
         win = np.nonzero(depth >= best_z[pix])[0]
         pw = pix[win]
@@ -237,10 +255,13 @@ def _shade(vertices, faces, r: _Raster, light_dir, smooth=True) -> np.ndarray:
     else:
         n = fn
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    # Two-sided lighting: a triangle seen from behind (open mesh, flipped winding) is lit as if flipped.
+    # Two-sided lighting: a triangle seen from behind (open mesh, flipped winding) is lit as if
+    # flipped.
     n = np.where((fn @ r.axes[2])[:, None] < 0, -n, n)
     if light_dir is None:
-        key = 0.45 * r.axes[0] + 0.6 * r.axes[1] + 1.0 * r.axes[2]  # upper-right-front of the camera
+        key = (
+            0.45 * r.axes[0] + 0.6 * r.axes[1] + 1.0 * r.axes[2]
+        )  # upper-right-front of the camera
     else:
         key = _check_light(light_dir)
     key = key / np.linalg.norm(key)
@@ -256,7 +277,9 @@ def _check_light(light_dir):
         return None
     key = np.asarray(light_dir, dtype=np.float64)
     if key.shape != (3,) or not np.all(np.isfinite(key)) or np.linalg.norm(key) == 0:
-        raise ValueError(f"`light_dir` must be None or a non-zero finite (3,) vector, got {light_dir!r}.")
+        raise ValueError(
+            f"`light_dir` must be None or a non-zero finite (3,) vector, got {light_dir!r}."
+        )
     return key
 
 
@@ -280,14 +303,20 @@ def _to_uint8(img: np.ndarray) -> np.ndarray:
 
 
 def _check_ss(antialias) -> int:
-    if not isinstance(antialias, (int, np.integer)) or isinstance(antialias, bool) or not 1 <= antialias <= 4:
-        raise ValueError(f"`antialias` must be an int in [1, 4] (supersampling factor), got {antialias!r}.")
+    if (
+        not isinstance(antialias, (int, np.integer))
+        or isinstance(antialias, bool)
+        or not 1 <= antialias <= 4
+    ):
+        raise ValueError(
+            f"`antialias` must be an int in [1, 4] (supersampling factor), got {antialias!r}."
+        )
     return int(antialias)
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Public API
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def render_mesh(
@@ -317,7 +346,8 @@ def render_mesh(
     - `background`: RGB background colour in `[0, 1]`.
     - `light_dir`: world-space direction from the surface **towards** the key light, shape `(3,)`;
       `None` places it above, right of and in front of the camera.
-    - `fit`: `None` fits the orthographic camera to this mesh's projected bounds (4% margin); a world
+    - `fit`: `None` fits the orthographic camera to this mesh's projected bounds (4% margin); a
+      world
       box `(2, 3)` = `[min, max]` (e.g. from [`bodyprior.mesh_bounds`][]) fits that box instead, so
       several bodies rendered with the same `fit` share scale and placement.
     - `antialias`: supersampling factor in `[1, 4]` (2 = 4 samples per pixel).
@@ -325,8 +355,9 @@ def render_mesh(
 
     **Returns:** `uint8` array of shape `(height, width, 3)`.
 
-    Speed: a 512x384 render of a 27k-triangle, 13.7k-vertex body takes about 0.12 s with
-    `antialias=1` and 0.35 s with the default `antialias=2` (one core, NumPy 2, x86-64).
+    Speed (the 26,756-triangle default body, 512x384, NumPy 2, 2 x86-64 cores shared with other
+    jobs, load ~7): ~0.09-0.16 s with `antialias=1`, ~0.3-0.55 s with the default `antialias=2`.
+    Use `antialias=1` for bulk renders.
     """
     vertices, faces = _check_mesh(vertices, faces)
     h, w = _check_size(size)
@@ -369,18 +400,18 @@ def render_vertex_colors(
     - `cmap`: a matplotlib colormap name or `Colormap`.
     - `vmin`, `vmax`: colour range; default to the min/max of `values`.
     - `shading`: in `[0, 1]`; how much Lambert shading darkens the colours (0 = pure colour map,
-      exact colours; the default keeps the shape readable while colours stay close to the colour bar).
+      exact colours; the default keeps the shape readable while colours stay close to the colour
+      bar).
     - `per_face`: colour each triangle by the mean of its three vertex values.
 
-    **Returns:** `uint8` array of shape `(height, width, 3)`. Use [`bodyprior.figure_with_colorbar`][]
+    **Returns:** `uint8` array of shape `(height, width, 3)`. Use
+    [`bodyprior.figure_with_colorbar`][]
     to add a colour bar.
     """
     import matplotlib
 
     vertices, faces = _check_mesh(vertices, faces)
-    values = np.asarray(
-        check_array(values, "values", (vertices.shape[0],)), dtype=np.float64
-    )
+    values = np.asarray(check_array(values, "values", (vertices.shape[0],)), dtype=np.float64)
     h, w = _check_size(size)
     background = _check_color(background, "background")
     ss = _check_ss(antialias)
@@ -473,7 +504,11 @@ def contact_sheet(
     nrows = int(np.ceil(n / ncols))
     ch, cw = _check_size(cell_size)
     bg = _check_color(background, "background")
-    lh = 0 if labels is None else (label_height if label_height is not None else max(14, int(0.12 * ch)))
+    lh = (
+        0
+        if labels is None
+        else (label_height if label_height is not None else max(14, int(0.12 * ch)))
+    )
     fit = mesh_bounds(*[v for v, _ in pairs]) if same_scale else None
     sheet = np.empty((nrows * (ch + lh), ncols * cw, 3), dtype=np.uint8)
     sheet[:] = _to_uint8(bg)
@@ -510,7 +545,9 @@ def save_png(path: str | os.PathLike, image) -> None:
         raise ValueError(f"`image` must have shape (H, W, 3) or (H, W, 4), got {img.shape}.")
     if img.dtype != np.uint8:
         if img.dtype.kind not in "f" or not np.all(np.isfinite(img)):
-            raise ValueError(f"`image` must be uint8 or finite float in [0, 1], got dtype {img.dtype}.")
+            raise ValueError(
+                f"`image` must be uint8 or finite float in [0, 1], got dtype {img.dtype}."
+            )
         img = _to_uint8(img)
     with atomic_open(path, "wb") as f:
         Image.fromarray(img).save(f, format="PNG")
@@ -527,7 +564,8 @@ def figure_with_colorbar(
     dpi: int = 100,
     path: str | os.PathLike | None = None,
 ):
-    """Wraps a rendered image in a matplotlib figure with a colour bar (Agg canvas, no pyplot state).
+    """Wraps a rendered image in a matplotlib figure with a colour bar (Agg canvas, no pyplot
+    state).
 
     **Arguments:**
 
@@ -556,7 +594,9 @@ def figure_with_colorbar(
     ax.set_axis_off()
     if title:
         fig.suptitle(title)
-    cax = fig.add_axes((w / (w + 110) + 0.02, 0.08, 15 / (w + 110), 0.8 * h / (h + (40 if title else 10))))
+    cax = fig.add_axes(
+        (w / (w + 110) + 0.02, 0.08, 15 / (w + 110), 0.8 * h / (h + (40 if title else 10)))
+    )
     norm = matplotlib.colors.Normalize(vmin=vmin, vmax=vmax)
     cm = matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap
     cb = fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cm), cax=cax)

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyprior._io import atomic_open, atomic_write_bytes, atomic_write_json, read_mesh, write_obj, write_ply
+from bodyprior._io import (
+    atomic_open,
+    atomic_write_bytes,
+    atomic_write_json,
+    read_mesh,
+    write_obj,
+    write_ply,
+)
 
 
 def _mesh(nv=50, nf=80, seed=0):
@@ -20,9 +27,9 @@ def _leftovers(d):
     return [p for p in os.listdir(d) if p.endswith(".tmp")]
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # atomic writes
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def test_atomic_write_bytes_roundtrip_and_overwrite(tmp_path):
@@ -73,7 +80,9 @@ def test_atomic_write_json(tmp_path):
     assert '\n  "a"' in text  # indent 2
 
 
-@pytest.mark.parametrize("bad", [float("nan"), float("inf"), np.float64("nan"), np.array([1.0, np.nan])])
+@pytest.mark.parametrize(
+    "bad", [float("nan"), float("inf"), np.float64("nan"), np.array([1.0, np.nan])]
+)
 def test_atomic_write_json_rejects_nan(tmp_path, bad):
     p = tmp_path / "a.json"
     p.write_text("{}")
@@ -83,15 +92,15 @@ def test_atomic_write_json_rejects_nan(tmp_path, bad):
     assert _leftovers(tmp_path) == []
 
 
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # mesh writers / readers
-# ---------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
     "fmt,kw,tol",
-    [("obj", {}, 1e-8), ("ply", {}, 1e-6), ("ply", {"binary": False}, 1e-6), ("ply", {"double": True}, 0.0),
-     ("ply", {"binary": False, "double": True}, 1e-15)],
+    [("obj", {}, 1e-8), ("ply", {}, 1e-6), ("ply", {"binary": False}, 1e-6),
+     ("ply", {"double": True}, 0.0), ("ply", {"binary": False, "double": True}, 1e-15)],
 )  # fmt: skip
 def test_mesh_roundtrip(tmp_path, fmt, kw, tol):
     v, f = _mesh()
@@ -157,10 +166,10 @@ def test_obj_polygons_slashes_negative_indices(tmp_path):
 def test_binary_ply_quads_big_endian_and_extra_props(tmp_path):
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=">f4")
     header = (
-        "ply\nformat binary_big_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-        "property float z\nproperty uchar red\nelement face 1\nproperty list uchar int vertex_indices\n"
-        "end_header\n"
-    ).encode()
+        b"ply\nformat binary_big_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        b"property float z\nproperty uchar red\nelement face 1\n"
+        b"property list uchar int vertex_indices\nend_header\n"
+    )
     vrec = np.zeros(4, dtype=[("xyz", ">f4", 3), ("r", "u1")])
     vrec["xyz"] = v
     face = np.array([4], "u1").tobytes() + np.array([0, 1, 2, 3], ">i4").tobytes()

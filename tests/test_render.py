@@ -76,7 +76,9 @@ def test_surface_facing_light_is_brighter():
         assert (right > left + 30) == brighter_right and (left > right + 30) != brighter_right
     # A face turned towards the default light (camera side) is brighter than one at grazing angle.
     img = render_mesh(v, f, size=(100, 100)).astype(float).mean(axis=-1)
-    assert img[40, 55] > img[50, 5 + np.argmax(_mask(render_mesh(v, f, size=(100, 100)))[50, 5:])] + 20
+    assert (
+        img[40, 55] > img[50, 5 + np.argmax(_mask(render_mesh(v, f, size=(100, 100)))[50, 5:])] + 20
+    )
 
 
 def test_front_back_mirror_x():
@@ -172,7 +174,9 @@ def test_save_png_roundtrip(tmp_path):
 def test_contact_sheet_layout_labels_and_scale():
     v, f = _sphere(sub=2)
     stack = np.stack([v, 0.5 * v, 0.25 * v])
-    sheet = contact_sheet(stack, f, ncols=2, labels=["a", "b", "c"], cell_size=(60, 50), label_height=12)
+    sheet = contact_sheet(
+        stack, f, ncols=2, labels=["a", "b", "c"], cell_size=(60, 50), label_height=12
+    )
     assert sheet.shape == (2 * (60 + 12), 2 * 50, 3) and sheet.dtype == np.uint8
     label_strip = sheet[60:72, :50]
     assert _mask(label_strip).any()  # text drawn under the first cell
@@ -192,7 +196,9 @@ def test_contact_sheet_layout_labels_and_scale():
 def test_vertex_colors_follow_colormap():
     v, f = _sphere()
     vals = v[:, 2]
-    img = render_vertex_colors(v, f, vals, vmin=-1, vmax=1, size=(100, 100), shading=0.0, antialias=1)
+    img = render_vertex_colors(
+        v, f, vals, vmin=-1, vmax=1, size=(100, 100), shading=0.0, antialias=1
+    )
     cm = matplotlib.colormaps["viridis"]
     radius_px = 50 * (1 - 2 * 0.04)
     for row in (6, 30, 50, 70, 93):  # front-most point at column 50 has z = height above centre
@@ -210,7 +216,9 @@ def test_vertex_colors_follow_colormap():
 def test_figure_with_colorbar(tmp_path):
     v, f = _sphere(sub=2)
     img = render_vertex_colors(v, f, v[:, 2], size=(80, 60))
-    fig = figure_with_colorbar(img, vmin=-1, vmax=1, label="error [mm]", title="t", path=tmp_path / "c.png")
+    fig = figure_with_colorbar(
+        img, vmin=-1, vmax=1, label="error [mm]", title="t", path=tmp_path / "c.png"
+    )
     assert isinstance(fig, matplotlib.figure.Figure)
     out = matplotlib.image.imread(tmp_path / "c.png")
     assert out.shape[0] >= 80 and out.shape[1] > 60
