@@ -1,13 +1,12 @@
 """Atomic file writes and OBJ/PLY mesh input/output.
 
 Everything here is host-side NumPy. Writers format whole arrays at once (`tobytes` for binary PLY,
-one
-`%`-format over the flattened array for text), so writing a 13k-vertex body takes a few milliseconds
-(binary PLY ~1 ms, OBJ ~15 ms on one core) and thousands of bodies can be written in a loop.
+one `%`-format over the flattened array for text), so writing a 13k-vertex body takes a few
+milliseconds (binary PLY ~1 ms, OBJ ~15 ms on one core) and thousands of bodies can be written in a
+loop.
 
 Readers are small, self-contained parsers (no trimesh processing, so vertex order is preserved
-exactly)
-that validate what they read and raise `ValueError` naming the file.
+exactly) that validate what they read and raise `ValueError` naming the file.
 """
 
 from __future__ import annotations
@@ -70,12 +69,9 @@ def atomic_open(
     """Opens a temporary file next to `path`; on a clean exit it replaces `path` atomically.
 
     The temporary file lives in the same directory (so `os.replace` is a rename on one filesystem),
-    is
-    flushed and `fsync`-ed before the rename, and gets the usual permissions (`0o666` minus the
-    umask).
-    If the body of the `with` block raises, the temporary file is deleted and `path` is left
-    untouched
-    (either absent or with its previous contents). Readers never see a half-written file.
+    is flushed and `fsync`-ed before the rename, and gets the usual permissions (`0o666` minus the
+    umask). If the body of the `with` block raises, the temporary file is deleted and `path` is left
+    untouched (either absent or with its previous contents). Readers never see a half-written file.
 
     **Arguments:**
 
@@ -141,8 +137,7 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 
     **NaN policy:** non-finite floats (NaN, ±inf) raise `ValueError` — they are not valid JSON and
     silently turning them into `null` would hide bugs. Replace them explicitly (e.g. with `None`)
-    first.
-    Nothing is written when serialisation fails.
+    first. Nothing is written when serialisation fails.
     """
     try:
         text = json.dumps(obj, sort_keys=True, indent=2, allow_nan=False, default=_json_default)
@@ -192,8 +187,7 @@ def write_obj(path: str | os.PathLike, vertices, faces=None, *, normals=None) ->
     - `path`: destination file.
     - `vertices`: float array of shape `(V, 3)`.
     - `faces`: integer array of shape `(F, 3)` with 0-based indices (written 1-based), or `None` for
-      a
-      point cloud.
+      a point cloud.
     - `normals`: optional per-vertex normals of shape `(V, 3)` (written as `vn`, faces as `f a//a
       ...`).
 
@@ -529,10 +523,8 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None, n
 
     Supports OBJ (`v`, `vn`, `f` with `a`, `a/b`, `a//c`, `a/b/c` and negative indices; polygons are
     fan-triangulated) and PLY (ASCII, binary little- and big-endian; `vertex` with `x y z` and
-    optional
-    `nx ny nz`; optional `face` with `vertex_indices` lists, polygons fan-triangulated). Vertex
-    order is
-    preserved exactly (no merging or reordering).
+    optional `nx ny nz`; optional `face` with `vertex_indices` lists, polygons fan-triangulated).
+    Vertex order is preserved exactly (no merging or reordering).
 
     **Arguments:**
 

@@ -3,10 +3,9 @@
 Triangles are rasterised in chunks: every pixel centre inside each triangle's screen bounding box is
 generated at once with `np.repeat`, tested with affine edge functions, and the nearest fragment per
 pixel is kept with `np.maximum.at` (an unbuffered scatter-max, far faster than sorting). Shading is
-per-pixel Lambert on interpolated (area-weighted) vertex normals,
-with a key light, a weak fill light and ambient, plus optional supersampled anti-aliasing. Labels
-and
-colour bars use Pillow / matplotlib's Agg canvas only.
+per-pixel Lambert on interpolated (area-weighted) vertex normals, with a key light, a weak fill
+light and ambient, plus optional supersampled anti-aliasing. Labels and colour bars use Pillow /
+matplotlib's Agg canvas only.
 
 Orthographic cameras, world frame Z up, body facing -Y (see `docs/architecture.md`):
 
@@ -347,17 +346,16 @@ def render_mesh(
     - `light_dir`: world-space direction from the surface **towards** the key light, shape `(3,)`;
       `None` places it above, right of and in front of the camera.
     - `fit`: `None` fits the orthographic camera to this mesh's projected bounds (4% margin); a
-      world
-      box `(2, 3)` = `[min, max]` (e.g. from [`bodyprior.mesh_bounds`][]) fits that box instead, so
-      several bodies rendered with the same `fit` share scale and placement.
+      world box `(2, 3)` = `[min, max]` (e.g. from [`bodyprior.mesh_bounds`][]) fits that box
+      instead, so several bodies rendered with the same `fit` share scale and placement.
     - `antialias`: supersampling factor in `[1, 4]` (2 = 4 samples per pixel).
     - `smooth`: interpolate vertex normals (Phong) instead of flat per-face shading.
 
     **Returns:** `uint8` array of shape `(height, width, 3)`.
 
     Speed (the 26,756-triangle default body, 512x384, NumPy 2, 2 x86-64 cores shared with other
-    jobs, load ~7): ~0.09-0.16 s with `antialias=1`, ~0.3-0.55 s with the default `antialias=2`.
-    Use `antialias=1` for bulk renders.
+    jobs, load ~7): ~0.09-0.16 s with `antialias=1`, ~0.3-0.55 s with the default `antialias=2`. Use
+    `antialias=1` for bulk renders.
     """
     vertices, faces = _check_mesh(vertices, faces)
     h, w = _check_size(size)
@@ -405,8 +403,7 @@ def render_vertex_colors(
     - `per_face`: colour each triangle by the mean of its three vertex values.
 
     **Returns:** `uint8` array of shape `(height, width, 3)`. Use
-    [`bodyprior.figure_with_colorbar`][]
-    to add a colour bar.
+    [`bodyprior.figure_with_colorbar`][] to add a colour bar.
     """
     import matplotlib
 
