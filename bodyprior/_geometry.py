@@ -12,6 +12,8 @@ before the operation, and the result is selected afterwards, so reverse-mode AD 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -493,12 +495,7 @@ def nearest_neighbors(
     queries, points = queries.astype(dtype), points.astype(dtype)
     if queries.shape[0] == 0:
         return jnp.zeros((0,), jnp.int32), jnp.zeros((0,), dtype)
-    p = jax.lax.stop_gradient(points)
-
-    def one(q):
-        return jnp.argmin(jnp.sum((p - q) ** 2, axis=-1)).astype(jnp.int32)
-
-    idx = jax.lax.map(one, jax.lax.stop_gradient(queries), batch_size=min(chunk_size, queries.shape[0]))
+    idx = _nn_search(jax.lax.stop_gradient(queries), jax.lax.stop_gradient(points), chunk_size)
     return idx, jnp.sum((queries - points[idx]) ** 2, axis=-1)
 
 
@@ -543,6 +540,32 @@ def _closest_bary(p: Float[Array, "*b 3"], a, b, c) -> Float[Array, "*b 3"]:
     return out
 
 
+# The two searches below are the only jitted code in this module. They are integer-valued and never
+# differentiated (their inputs are stop-gradient'ed), and `lax.map` called eagerly re-traces and
+# re-compiles its body on every call; a module-level `jit` with a static `chunk_size` compiles once per
+# shape. Inside a user's `jit` they are simply inlined.
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _nn_search(queries: Float[Array, "Q 3"], points: Float[Array, "P 3"], chunk_size: int) -> Int[Array, " Q"]:
+    def one(q):
+        return jnp.argmin(jnp.sum((points - q) ** 2, axis=-1)).astype(jnp.int32)
+
+    return jax.lax.map(one, queries, batch_size=min(chunk_size, queries.shape[0]))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _face_search(queries: Float[Array, "Q 3"], tri: Float[Array, "F 3 3"], chunk_size: int) -> Int[Array, " Q"]:
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+
+    def one(q):
+        bary = _closest_bary(q, a, b, c)
+        pts = bary[:, 0:1] * a + bary[:, 1:2] * b + bary[:, 2:3] * c
+        return jnp.argmin(jnp.sum((pts - q) ** 2, axis=-1)).astype(jnp.int32)
+
+    return jax.lax.map(one, queries, batch_size=min(chunk_size, queries.shape[0]))
+
+
 def closest_points_on_mesh(
     queries: Float[ArrayLike, "Q 3"],
     vertices: Float[ArrayLike, "V 3"],
@@ -584,14 +607,7 @@ def closest_points_on_mesh(
         z = jnp.zeros((0, 3), dtype)
         return z, jnp.zeros((0,), jnp.int32), z, jnp.zeros((0,), dtype)
     tri = jax.lax.stop_gradient(vertices)[faces]
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-
-    def one(q):
-        bary = _closest_bary(q, a, b, c)
-        pts = bary[:, 0:1] * a + bary[:, 1:2] * b + bary[:, 2:3] * c
-        return jnp.argmin(jnp.sum((pts - q) ** 2, axis=-1)).astype(jnp.int32)
-
-    fidx = jax.lax.map(one, jax.lax.stop_gradient(queries), batch_size=min(chunk_size, nq))
+    fidx = _face_search(jax.lax.stop_gradient(queries), tri, chunk_size)
     t = vertices[faces[fidx]]
     bary = _closest_bary(queries, t[:, 0], t[:, 1], t[:, 2])
     pts = jnp.einsum("qc,qcd->qd", bary, t)
