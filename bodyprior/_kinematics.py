@@ -1,19 +1,17 @@
 """Forward kinematics over a static parent tree, and the `Similarity` transform.
 
-The convention (docs/architecture.md, same as anny's `local-ref` parameterisation and SMPL): joint `j`
-has rest head position `h_j` and a local rotation `R_j` expressed in world-aligned axes at rest. With
-`parents[0] == -1`,
+The convention (docs/architecture.md, same as anny's `local-ref` parameterisation and SMPL): joint
+`j` has rest head position `h_j` and a local rotation `R_j` expressed in world-aligned axes at rest.
+With `parents[0] == -1`,
 
     G_0 = R_0,            t_0 = root_translation + h_0
     G_j = G_p R_j,        t_j = t_p + G_p (h_j - h_p)
     A_j = [G_j | t_j - G_j h_j]       (skinning transform)
 
-The tree is a static tuple of ints. Its depth levels are computed once on the host (cached per tuple)
-and the composition runs as one batched matmul per level, as in MJX's `scan.body_tree`, so a 24-joint
-SMPL tree needs about 9 sequential steps rather than 24.
+The tree is a static tuple of ints. Its depth levels are computed once on the host (cached per
+tuple) and the composition runs as one batched matmul per level, as in MJX's `scan.body_tree`, so a
+24-joint SMPL tree needs about 9 sequential steps rather than 24.
 """
-
-from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
@@ -36,7 +34,7 @@ __all__ = [
 ]
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # tree structure (host side)
 
 
@@ -54,7 +52,9 @@ def _validate_parents_cached(parents: tuple) -> tuple[int, ...]:
         raise ValueError(f"`parents[0]` must be -1 (joint 0 is the root), got {out[0]}.")
     for j, p in enumerate(out[1:], start=1):
         if p == -1:
-            raise ValueError(f"`parents` must have exactly one root (parents[0] == -1); joint {j} also has -1.")
+            raise ValueError(
+                f"`parents` must have exactly one root (parents[0] == -1); joint {j} also has -1."
+            )
         if not 0 <= p < J:
             raise ValueError(f"`parents[{j}]` must lie in [0, {J - 1}], got {p}.")
         if p == j:
@@ -82,8 +82,9 @@ def validate_parents(parents: Sequence[int]) -> tuple[int, ...]:
 
     **Arguments:**
 
-    - `parents`: sequence of `J` ints. `parents[0] == -1` (joint 0 is the only root); every other entry
-      is the index of the joint's parent, in `[0, J)`. Parents need **not** precede their children.
+    - `parents`: sequence of `J` ints. `parents[0] == -1` (joint 0 is the only root); every other
+      entry is the index of the joint's parent, in `[0, J)`. Parents need **not** precede their
+      children.
 
     **Returns:** `parents` as a tuple of Python ints.
 
@@ -94,7 +95,10 @@ def validate_parents(parents: Sequence[int]) -> tuple[int, ...]:
         raise ValueError(f"`parents` must be a sequence of ints, got {type(parents).__name__}.")
     if isinstance(parents, np.ndarray):
         if parents.ndim != 1 or parents.dtype.kind not in "iu":
-            raise ValueError(f"`parents` must be a 1-D integer sequence, got array {parents.dtype}{parents.shape}.")
+            raise ValueError(
+                f"`parents` must be a 1-D integer sequence, got array of dtype {parents.dtype} "
+                f"and shape {parents.shape}."
+            )
         parents = parents.tolist()
     return _validate_parents_cached(tuple(parents))
 
@@ -115,7 +119,9 @@ def _levels_cached(parents: tuple[int, ...]) -> tuple[np.ndarray, ...]:
             d += 1
             depth[k] = d
     depth_arr = np.asarray(depth)
-    levels = tuple(np.flatnonzero(depth_arr == d).astype(np.int32) for d in range(depth_arr.max() + 1))
+    levels = tuple(
+        np.flatnonzero(depth_arr == d).astype(np.int32) for d in range(depth_arr.max() + 1)
+    )
     for lvl in levels:
         lvl.setflags(write=False)
     return levels
@@ -128,15 +134,15 @@ def kinematic_levels(parents: Sequence[int]) -> tuple[np.ndarray, ...]:
 
     - `parents`: parent list, as in [`bodyprior.validate_parents`][].
 
-    **Returns:** a tuple of read-only NumPy `int32` index arrays; entry `d` lists (in increasing order)
-    the joints at depth `d`. Entry 0 is `[0]`. Every joint's parent is in the previous entry.
+    **Returns:** a tuple of read-only NumPy `int32` index arrays; entry `d` lists (in increasing
+    order) the joints at depth `d`. Entry 0 is `[0]`. Every joint's parent is in the previous entry.
 
     **Raises:** `ValueError` for an invalid tree.
     """
     return _levels_cached(validate_parents(parents))
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # forward kinematics
 
 
@@ -201,8 +207,9 @@ def forward_kinematics(
     so that `A_j` maps a rest-pose point rigidly attached to joint `j` to its posed position. Zero
     rotations (identity matrices) and zero translation give `A_j = I` and `t = rest_joints`.
 
-    The tree is grouped by depth on the host ([`bodyprior.kinematic_levels`][], cached) and each level
-    is one batched matmul. Works on one skeleton; `jax.vmap` over bodies (with `parents` closed over).
+    The tree is grouped by depth on the host ([`bodyprior.kinematic_levels`][], cached) and each
+    level is one batched matmul. Works on one skeleton; `jax.vmap` over bodies (with `parents`
+    closed over).
 
     **Arguments:**
 
@@ -226,15 +233,15 @@ def forward_kinematics(
     return jnp.concatenate([top, bottom], axis=1), t
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # similarity transforms
 
 
 class Similarity(eqx.Module):
     """A similarity transform `x -> s R x + t` (uniform scale, rotation, translation).
 
-    One transform; `jax.vmap` over a batch. The scale is stored as its logarithm so it stays positive
-    under unconstrained optimisation.
+    One transform; `jax.vmap` over a batch. The scale is stored as its logarithm so it stays
+    positive under unconstrained optimisation.
 
     !!! example
 
@@ -259,7 +266,7 @@ class Similarity(eqx.Module):
             raise ValueError(f"`translation` must have shape (3,), got {self.translation.shape}.")
 
     @classmethod
-    def identity(cls, dtype=None) -> Similarity:
+    def identity(cls, dtype=None) -> "Similarity":
         """The identity transform (`R = I`, `t = 0`, `s = 1`) in `dtype` (default float type)."""
         dtype = jnp.result_type(float) if dtype is None else dtype
         return cls(jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype=dtype), jnp.zeros((), dtype=dtype))
@@ -270,10 +277,12 @@ class Similarity(eqx.Module):
         rotation: Float[ArrayLike, "3 3"],
         translation: Float[ArrayLike, "3"],
         scale: Float[ArrayLike, ""] = 1.0,
-    ) -> Similarity:
+    ) -> "Similarity":
         """Builds a transform from a (positive) linear `scale` instead of its log."""
         rotation = jnp.asarray(rotation)
-        return cls(rotation, jnp.asarray(translation), jnp.log(jnp.asarray(scale, dtype=rotation.dtype)))
+        return cls(
+            rotation, jnp.asarray(translation), jnp.log(jnp.asarray(scale, dtype=rotation.dtype))
+        )
 
     @property
     def scale(self) -> Float[Array, ""]:
@@ -298,12 +307,12 @@ class Similarity(eqx.Module):
         """Same as [`bodyprior.Similarity.apply`][]."""
         return self.apply(points)
 
-    def inverse(self) -> Similarity:
+    def inverse(self) -> "Similarity":
         """The inverse transform `y -> (1/s) Rᵀ (y - t)`."""
         Rt = self.rotation.T
         return Similarity(Rt, -jnp.exp(-self.log_scale) * (Rt @ self.translation), -self.log_scale)
 
-    def compose(self, other: Similarity) -> Similarity:
+    def compose(self, other: "Similarity") -> "Similarity":
         """`self ∘ other`: the transform `x -> self.apply(other.apply(x))`."""
         return Similarity(
             self.rotation @ other.rotation,
@@ -327,19 +336,20 @@ def umeyama(
     r"""Least-squares similarity aligning `src` to `dst` (Umeyama 1991 / Horn 1987), closed form.
 
     Minimises $\sum_n w_n \| s R\, \mathrm{src}_n + t - \mathrm{dst}_n \|^2$ over rotations $R$
-    (never reflections: the smallest singular direction is flipped when `det < 0`), scales $s > 0$ and
-    translations $t$.
+    (never reflections: the smallest singular direction is flipped when `det < 0`), scales $s > 0$
+    and translations $t$.
 
     !!! warning
 
-        Gradients through the SVD are undefined for degenerate point sets (coincident singular values,
-        e.g. symmetric configurations); the value is still well defined.
+        Gradients through the SVD are undefined for degenerate point sets (coincident singular
+        values, e.g. symmetric configurations); the value is still well defined.
 
     **Arguments:**
 
     - `src`: source points, shape `(N, 3)`, metres.
     - `dst`: target points, shape `(N, 3)`, metres.
-    - `weights`: optional non-negative weights, shape `(N,)` (normalised internally); `None` = uniform.
+    - `weights`: optional non-negative weights, shape `(N,)` (normalised internally); `None` =
+      uniform.
     - `with_scale`: static bool; if `False` the scale is fixed to 1 (rigid alignment / Kabsch).
 
     **Returns:** a [`bodyprior.Similarity`][] with `sim.apply(src) ≈ dst`.

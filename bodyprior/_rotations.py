@@ -1,16 +1,14 @@
 """Rotation representations and conversions.
 
-Every function here works on **one** rotation: a `(3,)` axis-angle vector, a `(4,)` unit quaternion in
-`wxyz` order (scalar first), a `(3, 3)` rotation matrix acting on column vectors, a `(6,)` 6D vector
-(the first two *columns* of the matrix, Zhou et al. 2019), or `(3,)` Euler angles in a named order.
-Batch with `jax.vmap`. Angles are in radians.
+Every function here works on **one** rotation: a `(3,)` axis-angle vector, a `(4,)` unit quaternion
+in `wxyz` order (scalar first), a `(3, 3)` rotation matrix acting on column vectors, a `(6,)` 6D
+vector (the first two *columns* of the matrix, Zhou et al. 2019), or `(3,)` Euler angles in a named
+order. Batch with `jax.vmap`. Angles are in radians.
 
-Values **and** gradients are NaN-free at the degenerate configurations (zero rotation, rotation by π):
-small-angle Taylor branches are combined with a safe value substituted inside `jnp.where`, as in
+Values **and** gradients are NaN-free at the degenerate configurations (zero rotation, rotation by
+π): small-angle Taylor branches are combined with a safe value substituted inside `jnp.where`, as in
 `jaxlie/_so3.py::exp` (Sophus `so3.hpp`). Nothing here is jitted; jit the surrounding computation.
 """
-
-from __future__ import annotations
 
 import functools
 
@@ -52,7 +50,7 @@ ROTATION_REPS: tuple[str, ...] = ("axis_angle", "quaternion", "matrix", "sixd")
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # helpers
 
 
@@ -84,20 +82,21 @@ def _safe_normalize(v: Float[Array, " n"]) -> Float[Array, " n"]:
     """`v / |v|` with the norm clamped away from zero, so value and gradient stay finite."""
     tiny = jnp.finfo(v.dtype).tiny
     n2 = jnp.sum(v * v)
-    return v * jnp.reciprocal(jnp.sqrt(jnp.maximum(n2, tiny ** 0.5)))
+    return v * jnp.reciprocal(jnp.sqrt(jnp.maximum(n2, tiny**0.5)))
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # axis-angle
 
 
 def axis_angle_to_matrix(aa: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     r"""Rodrigues' formula: axis-angle vector to rotation matrix.
 
-    $R = I + \frac{\sin\theta}{\theta} K + \frac{1 - \cos\theta}{\theta^2} K^2$ with $K = [\omega]_\times$
-    and $\theta = |\omega|$. Below $\theta^2 \approx \sqrt{\epsilon}$ the coefficients use their Taylor
-    series, and the norm is taken of a safe value substituted inside `jnp.where`, so the value and the
-    gradient are exact and finite at `aa = 0` (see `jaxlie/_so3.py::exp`).
+    $R = I + \frac{\sin\theta}{\theta} K + \frac{1 - \cos\theta}{\theta^2} K^2$ with $K =
+    [\omega]_\times$ and $\theta = |\omega|$. Below $\theta^2 \approx \sqrt{\epsilon}$ the
+    coefficients use their Taylor series, and the norm is taken of a safe value substituted inside
+    `jnp.where`, so the value and the gradient are exact and finite at `aa = 0` (see
+    `jaxlie/_so3.py::exp`).
 
     **Arguments:**
 
@@ -125,7 +124,8 @@ def axis_angle_to_matrix(aa: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
 def axis_angle_to_quaternion(aa: Float[ArrayLike, "3"]) -> Float[Array, "4"]:
     r"""Axis-angle vector to unit quaternion `(w, x, y, z)`.
 
-    $q = (\cos\frac{\theta}{2}, \frac{\sin(\theta/2)}{\theta}\,\omega)$, with a Taylor branch at small
+    $q = (\cos\frac{\theta}{2}, \frac{\sin(\theta/2)}{\theta}\,\omega)$, with a Taylor branch at
+    small
     $\theta$ (NaN-free gradient at zero).
 
     **Arguments:**
@@ -140,7 +140,9 @@ def axis_angle_to_quaternion(aa: Float[ArrayLike, "3"]) -> Float[Array, "4"]:
     safe_theta2 = jnp.where(small, jnp.ones_like(theta2), theta2)
     theta = jnp.sqrt(safe_theta2)
     w = jnp.where(small, 1.0 - theta2 / 8.0 + theta2 * theta2 / 384.0, jnp.cos(0.5 * theta))
-    s = jnp.where(small, 0.5 - theta2 / 48.0 + theta2 * theta2 / 3840.0, jnp.sin(0.5 * theta) / theta)
+    s = jnp.where(
+        small, 0.5 - theta2 / 48.0 + theta2 * theta2 / 3840.0, jnp.sin(0.5 * theta) / theta
+    )
     return jnp.concatenate([w[None], s * aa])
 
 
@@ -148,8 +150,8 @@ def quaternion_to_axis_angle(q: Float[ArrayLike, "4"]) -> Float[Array, "3"]:
     r"""Unit quaternion `(w, x, y, z)` to axis-angle vector with angle in `[0, π]`.
 
     The quaternion is first flipped to `w >= 0` (q and -q are the same rotation). Then
-    $\omega = 2\,\mathrm{atan2}(|v|, w)\, v / |v|$, with the Taylor series of $2\,\mathrm{atan2}(n, w)/n$
-    near $n = 0$ so that the gradient at the identity is finite. Scale-invariant in `q`.
+    $\omega = 2\,\mathrm{atan2}(|v|, w)\, v / |v|$, with the Taylor series of $2\,\mathrm{atan2}(n,
+    w)/n$ near $n = 0$ so that the gradient at the identity is finite. Scale-invariant in `q`.
 
     **Arguments:**
 
@@ -177,8 +179,8 @@ def matrix_to_axis_angle(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     """Rotation matrix to axis-angle vector (the SO(3) logarithm), angle in `[0, π]`.
 
     Goes through [`bodyprior.matrix_to_quaternion`][] (Shepperd's method), which is well conditioned
-    everywhere including near π, then [`bodyprior.quaternion_to_axis_angle`][]. Value and gradient are
-    finite at the identity and near a half turn.
+    everywhere including near π, then [`bodyprior.quaternion_to_axis_angle`][]. Value and gradient
+    are finite at the identity and near a half turn.
 
     **Arguments:**
 
@@ -190,14 +192,15 @@ def matrix_to_axis_angle(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     return quaternion_to_axis_angle(matrix_to_quaternion(R))
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # quaternions
 
 
 def quaternion_to_matrix(q: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
     """Quaternion `(w, x, y, z)` to rotation matrix.
 
-    Uses `s = 2 / |q|²`, so a non-unit (non-zero) quaternion gives the rotation of its normalisation.
+    Uses `s = 2 / |q|²`, so a non-unit (non-zero) quaternion gives the rotation of its
+    normalisation.
 
     **Arguments:**
 
@@ -221,10 +224,10 @@ def quaternion_to_matrix(q: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
 def matrix_to_quaternion(R: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]:
     """Rotation matrix to unit quaternion `(w, x, y, z)` by Shepperd's method, branch-free.
 
-    The four candidate formulas are the rows of the symmetric matrix `K = 4 q qᵀ` built linearly from
-    `R`; the row with the largest diagonal entry `4 q_i²` is picked by `argmax` (no Python branch), and
-    divided by `4 |q_i|` (clamped, so value and gradient are finite everywhere). The result is
-    normalised and its sign chosen so that `w >= 0`.
+    The four candidate formulas are the rows of the symmetric matrix `K = 4 q qᵀ` built linearly
+    from `R`; the row with the largest diagonal entry `4 q_i²` is picked by `argmax` (no Python
+    branch), and divided by `4 |q_i|` (clamped, so value and gradient are finite everywhere). The
+    result is normalised and its sign chosen so that `w >= 0`.
 
     **Arguments:**
 
@@ -292,7 +295,7 @@ def quaternion_conjugate(q: Float[ArrayLike, "4"]) -> Float[Array, "4"]:
     return q * jnp.array([1, -1, -1, -1], dtype=q.dtype)
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # 6D
 
 
@@ -330,15 +333,16 @@ def matrix_to_sixd(R: Float[ArrayLike, "3 3"]) -> Float[Array, "6"]:
     return jnp.concatenate([R[:, 0], R[:, 1]])
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Euler angles
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _parse_euler_order(order) -> tuple[int, int, int]:
     if not isinstance(order, str) or order not in EULER_ORDERS:
         raise ValueError(
-            f"`order` must be one of {', '.join(EULER_ORDERS)} (upper case, intrinsic, applied in the "
+            f"`order` must be one of {', '.join(EULER_ORDERS)} (upper case, intrinsic, applied in "
+            f"the "
             f"written order), got {order!r}."
         )
     return tuple(_AXIS[c] for c in order)
@@ -362,7 +366,8 @@ def euler_to_matrix(angles: Float[ArrayLike, "3"], order: str) -> Float[Array, "
     For `order = "ZYX"` and `angles = (a, b, c)` the result is `Rz(a) @ Ry(b) @ Rx(c)`: intrinsic
     rotations in the written order (equivalently, extrinsic rotations in the reverse order; SciPy's
     `Rotation.from_euler("ZYX", angles)` with upper-case letters). All 12 orders in
-    [`bodyprior.EULER_ORDERS`][] are supported, Tait-Bryan (`"XYZ"`, ...) and proper Euler (`"ZXZ"`, ...).
+    [`bodyprior.EULER_ORDERS`][] are supported, Tait-Bryan (`"XYZ"`, ...) and proper Euler (`"ZXZ"`,
+    ...).
 
     **Arguments:**
 
@@ -387,9 +392,9 @@ def matrix_to_euler(R: Float[ArrayLike, "3 3"], order: str) -> Float[Array, "3"]
     """Rotation matrix to Euler angles; the inverse of [`bodyprior.euler_to_matrix`][].
 
     Ranges: for Tait-Bryan orders the middle angle is in `[-π/2, π/2]`, for proper Euler orders in
-    `[0, π]`; the outer angles are in `(-π, π]`. At gimbal lock (middle-angle cosine, resp. sine, below
-    ~`sqrt(eps)`) the last angle is set to 0 and the first absorbs the whole rotation; values and
-    gradients stay finite there.
+    `[0, π]`; the outer angles are in `(-π, π]`. At gimbal lock (middle-angle cosine, resp. sine,
+    below ~`sqrt(eps)`) the last angle is set to 0 and the first absorbs the whole rotation; values
+    and gradients stay finite there.
 
     **Arguments:**
 
@@ -409,8 +414,8 @@ def matrix_to_euler(R: Float[ArrayLike, "3 3"], order: str) -> Float[Array, "3"]
     sign = 1.0 if (j - i) % 3 == 1 else -1.0
     thresh = _taylor_threshold(R.dtype)
     if proper:
-        # R = R_i(a) R_j(b) R_i(c):  R[i,i] = cos b, R[i,j] = sin b sin c, R[i,k] = sign sin b cos c,
-        # R[j,i] = sin a sin b, R[k,i] = -sign cos a sin b.
+        # R = R_i(a) R_j(b) R_i(c):  R[i,i] = cos b, R[i,j] = sin b sin c,
+        # R[i,k] = sign sin b cos c, R[j,i] = sin a sin b, R[k,i] = -sign cos a sin b.
         other2 = R[i, j] ** 2 + R[i, k] ** 2  # sin² b
         ok = other2 > thresh**2
         other = jnp.sqrt(jnp.where(ok, other2, 1.0))
@@ -418,8 +423,8 @@ def matrix_to_euler(R: Float[ArrayLike, "3 3"], order: str) -> Float[Array, "3"]
         c = _safe_atan2(R[i, j], sign * R[i, k], ok)
         a = _safe_atan2(R[j, i], -sign * R[k, i], ok)
     else:
-        # R = R_i(a) R_j(b) R_k(c):  R[i,k] = sign sin b, R[i,i] = cos b cos c, R[i,j] = -sign cos b sin c,
-        # R[k,k] = cos a cos b, R[j,k] = -sign sin a cos b.
+        # R = R_i(a) R_j(b) R_k(c):  R[i,k] = sign sin b, R[i,i] = cos b cos c,
+        # R[i,j] = -sign cos b sin c, R[k,k] = cos a cos b, R[j,k] = -sign sin a cos b.
         other2 = R[i, i] ** 2 + R[i, j] ** 2  # cos² b
         ok = other2 > thresh**2
         other = jnp.sqrt(jnp.where(ok, other2, 1.0))
@@ -437,7 +442,7 @@ def matrix_to_euler(R: Float[ArrayLike, "3 3"], order: str) -> Float[Array, "3"]
     return jnp.stack([a, b, c]).astype(R.dtype)
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # dispatch
 
 
@@ -524,9 +529,9 @@ def matrix_to_rotation(R: Float[ArrayLike, "3 3"], rep: str) -> Float[Array, "..
 def project_to_rotation(M: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
     """Nearest rotation matrix (Frobenius norm) to a `3 × 3` matrix, by SVD with a determinant fix.
 
-    With `M = U S Vᵀ`, returns `U diag(1, 1, d) Vᵀ`, `d = sign(det(U Vᵀ))`, so the result is a proper
-    rotation (`det = +1`) even when `M` is a reflection or rank-deficient. This is the orthogonal
-    Procrustes / Kabsch solution when `M` is a cross-covariance.
+    With `M = U S Vᵀ`, returns `U diag(1, 1, d) Vᵀ`, `d = sign(det(U Vᵀ))`, so the result is a
+    proper rotation (`det = +1`) even when `M` is a reflection or rank-deficient. This is the
+    orthogonal Procrustes / Kabsch solution when `M` is a cross-covariance.
 
     !!! warning
 

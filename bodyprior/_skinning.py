@@ -1,11 +1,11 @@
-"""Skinning: linear blend skinning (LBS) with sparse top-k weights, and dual-quaternion skinning (DQS).
+"""Skinning: linear blend skinning (LBS) with sparse top-k weights, and dual-quaternion skinning
+(DQS).
 
 Skinning weights are stored sparsely: each vertex has `K` (joint index, weight) pairs, `K` small
-(typically 4–8), instead of a dense `(V, J)` matrix. Transforms are the `(J, 4, 4)` skinning transforms
-`A_j` of [`bodyprior.forward_kinematics`][]. Kernels work on one mesh; `jax.vmap` over bodies.
+(typically 4–8), instead of a dense `(V, J)` matrix. Transforms are the `(J, 4, 4)` skinning
+transforms `A_j` of [`bodyprior.forward_kinematics`][]. Kernels work on one mesh; `jax.vmap` over
+bodies.
 """
-
-from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +33,8 @@ def _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms):
         idx = np.asarray(weight_indices)
         if idx.size and (idx.min() < 0 or idx.max() >= dims["J"]):
             raise ValueError(
-                f"`weight_indices` must lie in [0, {dims['J'] - 1}] (J = {dims['J']} transforms), got "
+                f"`weight_indices` must lie in [0, {dims['J'] - 1}] (J = {dims['J']} transforms), "
+                f"got "
                 f"values in [{idx.min()}, {idx.max()}]."
             )
     x = _as_float(rest_vertices)
@@ -51,9 +52,9 @@ def lbs(
 ) -> Float[Array, "V 3"]:
     r"""Linear blend skinning with sparse top-k weights.
 
-    $v'_i = \left(\sum_k w_{ik} A_{j_{ik}}\right) [v_i; 1]$: the `K` gathered `3 × 4` transforms of each
-    vertex are blended first, then applied. Weights are used as given (normally each row sums to 1;
-    a row summing to 1 makes the result invariant to a global rigid transform).
+    $v'_i = \left(\sum_k w_{ik} A_{j_{ik}}\right) [v_i; 1]$: the `K` gathered `3 × 4` transforms of
+    each vertex are blended first, then applied. Weights are used as given (normally each row sums
+    to 1; a row summing to 1 makes the result invariant to a global rigid transform).
 
     **Arguments:**
 
@@ -85,8 +86,8 @@ def dense_weights_to_topk(
     - `weights`: dense non-negative weights, shape `(V, J)`.
     - `k`: number of joints kept per vertex, `1 <= k <= J`.
 
-    **Returns:** a tuple `(indices, weights)` of NumPy arrays, shapes `(V, k)` (`int32`) and `(V, k)`
-    (same float dtype as the input, or float64).
+    **Returns:** a tuple `(indices, weights)` of NumPy arrays, shapes `(V, k)` (`int32`) and `(V,
+    k)` (same float dtype as the input, or float64).
 
     **Raises:** `ValueError` for a bad shape, bad `k`, negative weights, or a vertex whose kept
     weights sum to zero.
@@ -112,7 +113,7 @@ def dense_weights_to_topk(
     return order.astype(np.int32), top / total
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # dual quaternions
 
 
@@ -153,11 +154,11 @@ def dqs(
     """Dual-quaternion skinning (Kavan, Collins, Žára, O'Sullivan 2007).
 
     Each bone's rigid transform becomes a unit dual quaternion
-    ([`bodyprior.transform_to_dual_quaternion`][]). Per vertex, the `K` gathered dual quaternions are
-    sign-aligned to the one of the vertex's **dominant** (largest-weight) bone (antipodality: `q` and
-    `-q` are the same rotation), blended linearly, normalised by the norm of the real part, and applied.
-    Avoids LBS's "candy-wrapper" volume loss. With identity transforms it returns the rest mesh, with
-    finite gradients.
+    ([`bodyprior.transform_to_dual_quaternion`][]). Per vertex, the `K` gathered dual quaternions
+    are sign-aligned to the one of the vertex's **dominant** (largest-weight) bone (antipodality:
+    `q` and `-q` are the same rotation), blended linearly, normalised by the norm of the real part,
+    and applied. Avoids LBS's "candy-wrapper" volume loss. With identity transforms it returns the
+    rest mesh, with finite gradients.
 
     **Arguments:** as for [`bodyprior.lbs`][]; `transforms` must be rigid (rotation + translation).
 

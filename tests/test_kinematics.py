@@ -62,7 +62,7 @@ def random_pose(rng, J, scale=1.0):
     return Rotation.from_rotvec(scale * rng.normal(size=(J, 3))).as_matrix()
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # forward kinematics
 
 fk = jax.jit(forward_kinematics, static_argnums=0)
@@ -113,7 +113,9 @@ def test_matches_naive_loop_on_random_31_joint_tree(seed):
     np.testing.assert_allclose(A, A_ref, atol=1e-12)
     np.testing.assert_allclose(t, t_ref, atol=1e-12)
     # A_j maps the rest head to the posed head, and world_transforms agrees.
-    np.testing.assert_allclose(np.einsum("jab,jb->ja", A[:, :3, :3], h) + A[:, :3, 3], t, atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("jab,jb->ja", A[:, :3, :3], h) + A[:, :3, 3], t, atol=1e-12
+    )
     G, t2 = jax.jit(world_transforms, static_argnums=0)(parents, R, h, trans)
     np.testing.assert_allclose(G, A[:, :3, :3], atol=1e-12)
     np.testing.assert_allclose(t2, t, atol=1e-12)
@@ -152,7 +154,9 @@ def test_bad_parents(bad, match):
     with pytest.raises(ValueError, match=match):
         validate_parents(bad)
     with pytest.raises(ValueError):
-        forward_kinematics(bad, np.zeros((max(len(bad), 1), 3, 3)), np.zeros((max(len(bad), 1), 3)), np.zeros(3))
+        forward_kinematics(
+            bad, np.zeros((max(len(bad), 1), 3, 3)), np.zeros((max(len(bad), 1), 3)), np.zeros(3)
+        )
 
 
 def test_validate_parents_accepts_numpy():
@@ -209,19 +213,23 @@ def test_gradient_through_fk_at_zero_pose_is_finite():
 def test_float32_dtype_preserved():
     parents = (-1, 0)
     A, t = fk(
-        parents, jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (2, 3, 3)), jnp.zeros((2, 3), jnp.float32),
+        parents,
+        jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (2, 3, 3)),
+        jnp.zeros((2, 3), jnp.float32),
         jnp.zeros(3, jnp.float32),
     )
     assert A.dtype == jnp.float32 and t.dtype == jnp.float32
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Similarity / Umeyama
 
 
 def random_similarity(rng):
     return Similarity.from_scale(
-        Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3), np.exp(rng.normal() * 0.5)
+        Rotation.from_rotvec(rng.normal(size=3)).as_matrix(),
+        rng.normal(size=3),
+        np.exp(rng.normal() * 0.5),
     )
 
 

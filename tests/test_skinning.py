@@ -87,7 +87,9 @@ def test_dqs_equals_lbs_for_shared_transform_and_single_bone():
     np.testing.assert_allclose(dqs_j(x, idx, w, A), lbs_j(x, idx, w, A), atol=1e-12)
     one = np.zeros((V, 2), np.int32)
     half = np.full((V, 2), 0.5)
-    np.testing.assert_allclose(dqs_j(x, one, half, T[None]), lbs_j(x, one, half, T[None]), atol=1e-12)
+    np.testing.assert_allclose(
+        dqs_j(x, one, half, T[None]), lbs_j(x, one, half, T[None]), atol=1e-12
+    )
 
 
 def test_dqs_antipodal_blend_and_volume():
@@ -125,7 +127,9 @@ def test_gradients_finite_at_identity_and_random_pose():
 
     def loss(aa):
         A = forward_kinematics(PARENTS, jax.vmap(axis_angle_to_matrix)(aa), h, jnp.zeros(3))[0]
-        return jnp.sum((lbs(x, idx, w, A) - target) ** 2) + jnp.sum((dqs(x, idx, w, A) - target) ** 2)
+        return jnp.sum((lbs(x, idx, w, A) - target) ** 2) + jnp.sum(
+            (dqs(x, idx, w, A) - target) ** 2
+        )
 
     grad = jax.jit(jax.grad(loss))
     for aa in (jnp.zeros((J, 3)), jnp.asarray(rng.normal(size=(J, 3)))):
@@ -152,7 +156,9 @@ def test_vmap_over_bodies():
     A = jax.vmap(posed_transforms, in_axes=(0, None))(rng.normal(size=(3, J, 3)), h)
     out = jax.jit(jax.vmap(lbs, in_axes=(None, None, None, 0)))(x, idx, w, A)
     for b in range(3):
-        np.testing.assert_allclose(out[b], dense_lbs_reference(x, idx, w, np.asarray(A[b])), atol=1e-12)
+        np.testing.assert_allclose(
+            out[b], dense_lbs_reference(x, idx, w, np.asarray(A[b])), atol=1e-12
+        )
 
 
 def test_dense_weights_to_topk():
@@ -169,7 +175,9 @@ def test_dense_weights_to_topk():
     x = rng.normal(size=(10, 3))
     Wn = W / W.sum(1, keepdims=True)
     M = np.einsum("vj,jab->vab", Wn, T)
-    np.testing.assert_allclose(lbs_j(x, idx, w, T), np.einsum("vab,vb->va", M[:, :3, :3], x) + M[:, :3, 3])
+    np.testing.assert_allclose(
+        lbs_j(x, idx, w, T), np.einsum("vab,vb->va", M[:, :3, :3], x) + M[:, :3, 3]
+    )
     for bad_k in (0, 7, 1.5, True):
         with pytest.raises(ValueError, match="`k`"):
             dense_weights_to_topk(W, bad_k)
