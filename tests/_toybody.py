@@ -1,10 +1,10 @@
 """A small synthetic skinned body for tests: a closed tube along +Z split into a chain of segments.
 
 The tube has `n_rings` rings of `n_around` vertices plus two cap vertices (closed, genus 0, outward
-faces). Joint `j` (a chain, `parents = (-1, 0, 1, ...)`) sits at the centroid of the ring at the bottom
-of segment `j`, so joints follow the body shape exactly. Skin weights blend smoothly between adjacent
-segments (at most two influences per vertex). `make_toy_model` adds an orthonormal PCA basis of smooth
-deformations (bulges, stretches, bends), all deterministic from `seed`.
+faces). Joint `j` (a chain, `parents = (-1, 0, 1, ...)`) sits at the centroid of the ring at the
+bottom of segment `j`, so joints follow the body shape exactly. Skin weights blend smoothly between
+adjacent segments (at most two influences per vertex). `make_toy_model` adds an orthonormal PCA
+basis of smooth deformations (bulges, stretches, bends), all deterministic from `seed`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ def tube_mesh(n_around: int = 12, n_rings: int = 30, radius: float = 0.1, height
     )
     bottom = n_rings * n_around
     top = bottom + 1
-    verts = np.concatenate([verts, [[0.0, 0.0, -0.02 * height]], [[0.0, 0.0, 1.02 * height]]], axis=0)
+    verts = np.concatenate(
+        [verts, [[0.0, 0.0, -0.02 * height]], [[0.0, 0.0, 1.02 * height]]], axis=0
+    )
     faces = []
     for r in range(n_rings - 1):
         for i in range(n_around):
@@ -41,13 +43,15 @@ def tube_mesh(n_around: int = 12, n_rings: int = 30, radius: float = 0.1, height
 
 
 def toy_rig(n_around: int = 12, n_rings: int = 30, n_joints: int = 4, height: float = 1.0):
-    """Rig of the tube: `(parents, names, reg_idx (J, n_around), reg_w, skin_idx (V, 2), skin_w)`."""
+    """Rig of the tube: `(parents, names, reg_idx (J, n_around), reg_w, skin_idx (V, 2),
+    skin_w)`."""
     n_vertices = n_rings * n_around + 2
     # Joint j's ring: evenly spaced, joint 0 at the bottom ring.
     joint_rings = np.round(np.linspace(0, n_rings - 1, n_joints + 1)[:-1]).astype(int)
     reg_idx = np.stack([r * n_around + np.arange(n_around) for r in joint_rings]).astype(np.int32)
     reg_w = np.full(reg_idx.shape, 1.0 / n_around)
-    # Smooth weights from ring height: segment j spans [ring_j, ring_{j+1}); blend over one ring gap.
+    # Smooth weights from ring height: segment j spans [ring_j, ring_{j+1}); blend over one ring
+    # gap.
     ring_of_vertex = np.concatenate([np.repeat(np.arange(n_rings), n_around), [0, n_rings - 1]])
     pos = ring_of_vertex.astype(np.float64)
     skin_idx = np.zeros((n_vertices, 2), np.int32)
@@ -81,7 +85,9 @@ def toy_basis(verts: np.ndarray, n_components: int, seed: int = 0):
         phase = rng.uniform(0, 2 * np.pi)
         kind = k % 3
         if kind == 0:  # radial bulge
-            f = np.concatenate([xy * np.sin(np.pi * freq * zn + phase)[:, None], np.zeros_like(z)[:, None]], 1)
+            f = np.concatenate(
+                [xy * np.sin(np.pi * freq * zn + phase)[:, None], np.zeros_like(z)[:, None]], 1
+            )
         elif kind == 1:  # vertical stretch
             f = np.zeros_like(verts)
             f[:, 2] = np.cos(np.pi * freq * zn + phase)

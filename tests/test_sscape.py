@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
+from _toybody import make_toy_model
 
 from bodyprior._kinematics import Similarity
 from bodyprior._rotations import axis_angle_to_matrix, matrix_to_rotation
 from bodyprior.sscape import (
-    FORMAT_NAME,
     SScapeModel,
     compactness,
     evaluate,
@@ -32,9 +32,6 @@ from bodyprior.sscape import (
     write_mpii_humanshape,
 )
 
-from _toybody import make_toy_model
-
-
 _evaluate = eqx.filter_jit(evaluate)
 
 
@@ -47,6 +44,7 @@ def _random_rotation(key):
     return axis_angle_to_matrix(jr.normal(key, (3,)))
 
 
+@eqx.filter_jit
 def _low_rank_meshes(model, key, n=40, rigid=True):
     """Meshes drawn from the model's shape space (coefficients of zero sample mean), each moved by a
     random rigid motion."""
@@ -115,18 +113,26 @@ def test_rigid_transform_commutes(model, getkey):
     np.testing.assert_allclose(jt, sim.apply(j), atol=1e-12)
     # root translation is a pure translation
     vr, jr_ = _evaluate(model, c, pose, root_translation=jnp.array([0.1, -0.2, 0.3]))
-    np.testing.assert_allclose(vr - v, jnp.broadcast_to(jnp.array([0.1, -0.2, 0.3]), v.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        vr - v, jnp.broadcast_to(jnp.array([0.1, -0.2, 0.3]), v.shape), atol=1e-12
+    )
 
 
 def test_pose_moves_only_distal_segments(model):
     pose = jnp.zeros((4, 3)).at[3].set(jnp.array([1.0, 0.0, 0.0]))
     v, j = _evaluate(model, jnp.zeros(5), pose)
     w = np.zeros((model.n_vertices, model.n_joints))
-    np.add.at(w, (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)), model.skin_weights)
+    np.add.at(
+        w,
+        (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)),
+        model.skin_weights,
+    )
     untouched = w[:, 3] == 0
     np.testing.assert_allclose(v[untouched], model.mean[untouched], atol=1e-12)
     assert float(jnp.abs(v - model.mean).max()) > 0.05
-    np.testing.assert_allclose(j, rest_joints(model, model.mean), atol=1e-12)  # joint 3 pivots in place
+    np.testing.assert_allclose(
+        j, rest_joints(model, model.mean), atol=1e-12
+    )  # joint 3 pivots in place
 
 
 def test_jit_vmap_batch(model, getkey):
@@ -161,14 +167,15 @@ def test_gradients_match_finite_differences(model, getkey):
         return jnp.sum(v * target) + jnp.sum(j**2)
 
     loss = jax.jit(loss)
-    gc, gp = jax.jit(jax.grad(loss, argnums=(0, 1)))(c0, p0)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    gc, gp = grad(c0, p0)
     assert np.all(np.isfinite(gc)) and np.all(np.isfinite(gp))
     eps = 1e-6
     dc, dp = jr.normal(getkey(), c0.shape), jr.normal(getkey(), p0.shape)
     fd = (loss(c0 + eps * dc, p0 + eps * dp) - loss(c0 - eps * dc, p0 - eps * dp)) / (2 * eps)
     np.testing.assert_allclose(jnp.sum(gc * dc) + jnp.sum(gp * dp), fd, rtol=1e-6, atol=1e-7)
     # finite gradient at the zero pose (degenerate axis-angle)
-    _, gp0 = jax.jit(jax.grad(loss, argnums=(0, 1)))(c0, jnp.zeros((4, 3)))
+    _, gp0 = grad(c0, jnp.zeros((4, 3)))
     assert np.all(np.isfinite(gp0))
 
 
@@ -190,10 +197,14 @@ def test_input_validation(model):
     with pytest.raises(ValueError, match="basis"):
         eqx.tree_at(lambda m: m.basis, model, model.basis[:, :10]).__check_init__()
     with pytest.raises(ValueError, match="skin_indices"):
-        SScapeModel(**{f: getattr(model, f) for f in _FIELDS if f != "skin_indices"},
-                    skin_indices=model.skin_indices + 10)
+        SScapeModel(
+            **{f: getattr(model, f) for f in _FIELDS if f != "skin_indices"},
+            skin_indices=model.skin_indices + 10,
+        )
     with pytest.raises(ValueError, match="joint_names"):
-        SScapeModel(**{f: getattr(model, f) for f in _FIELDS if f != "joint_names"}, joint_names=("a",))
+        SScapeModel(
+            **{f: getattr(model, f) for f in _FIELDS if f != "joint_names"}, joint_names=("a",)
+        )
 
 
 _FIELDS = [
@@ -224,7 +235,8 @@ def _principal_angles(a, b):
 def test_procrustes_recovers_rigid_motion(model, getkey):
     meshes, _ = _low_rank_meshes(model, getkey(), n=10)
     aligned, t = procrustes_align(meshes)
-    # aligned[i] = t[i](meshes[i]) and all aligned meshes share one frame: the aligned set, re-aligned,
+    # aligned[i] = t[i](meshes[i]) and all aligned meshes share one frame: the aligned set,
+    # re-aligned,
     # is unchanged.
     np.testing.assert_allclose(jax.vmap(lambda s, x: s.apply(x))(t, meshes), aligned, atol=1e-10)
     again, _ = procrustes_align(aligned, reference=aligned.mean(0))
@@ -304,7 +316,9 @@ def test_generalization(model, getkey):
     mu = others.mean(0)
     _, _, vt = np.linalg.svd(others - mu, full_matrices=False)
     r = (x[3] - mu) - vt[:2].T @ (vt[:2] @ (x[3] - mu))
-    np.testing.assert_allclose(g.errors[3, 2], np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8)
+    np.testing.assert_allclose(
+        g.errors[3, 2], np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8
+    )
     gs = generalization(noisy, 3, n_train=8)
     assert gs.errors.shape == (16, 1)
     with pytest.raises(ValueError, match="n_components"):
@@ -318,7 +332,9 @@ def test_specificity(model, getkey):
     s = specificity(learned, meshes, [0, 1, 3, 5], key=key, n_samples=64, chunk_size=16)
     assert s.distances.shape == (64, 4)
     # M = 0: every sample is the mean
-    d_mean = jnp.min(jax.vmap(lambda x: jnp.mean(jnp.linalg.norm(x - learned.mean, axis=-1)))(meshes))
+    d_mean = jnp.min(
+        jax.vmap(lambda x: jnp.mean(jnp.linalg.norm(x - learned.mean, axis=-1)))(meshes)
+    )
     np.testing.assert_allclose(s.distances[:, 0], d_mean, rtol=1e-10)
     # Brute force for a few samples: ML Gaussian of the projected training data, nearest neighbour.
     x = np.asarray(meshes).reshape(30, -1)
@@ -428,8 +444,11 @@ def tiny():
 
 def _overlap_regressor(model):
     w = np.zeros((model.n_vertices, model.n_joints))
-    np.add.at(w, (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)),
-              np.asarray(model.skin_weights))
+    np.add.at(
+        w,
+        (np.arange(model.n_vertices)[:, None], np.asarray(model.skin_indices)),
+        np.asarray(model.skin_weights),
+    )
     rows = []
     for j, p in enumerate(model.parents):
         r = w[:, j] if p < 0 else np.minimum(w[:, j], w[:, p])
@@ -440,7 +459,12 @@ def _overlap_regressor(model):
 def test_mpii_round_trip(tiny, tmp_path):
     axes = np.eye(3)[[0, 0, 1, 2]] * 1.0
     write_mpii_humanshape(tmp_path, tiny, axes=axes)
-    assert sorted(os.listdir(tmp_path)) == ["evalues.mat", "evectors.mat", "meanShape.mat", "model.dat"]
+    assert sorted(os.listdir(tmp_path)) == [
+        "evalues.mat",
+        "evectors.mat",
+        "meanShape.mat",
+        "model.dat",
+    ]
     with open(tmp_path / "model.dat") as f:
         assert f.readline().split() == ["50", str(tiny.faces.shape[0]), "4", "2"]
     loaded, rig = load_mpii_humanshape(tmp_path, center=False, return_rig=True)
@@ -452,29 +476,45 @@ def test_mpii_round_trip(tiny, tmp_path):
     assert loaded.parents == tiny.parents
     np.testing.assert_array_equal(rig.ids, [1, 2, 3, 4])
     np.testing.assert_allclose(rig.axes, axes)
+
     # Skin weights, densified, agree; the regressor is humanshape's overlap rule.
     def dense(idx, w, nj):
         d = np.zeros((idx.shape[0], nj))
         np.add.at(d, (np.arange(idx.shape[0])[:, None], np.asarray(idx)), np.asarray(w))
         return d
 
-    np.testing.assert_allclose(dense(loaded.skin_indices, loaded.skin_weights, 4),
-                               dense(tiny.skin_indices, tiny.skin_weights, 4), atol=1e-8)
-    np.testing.assert_allclose(dense(loaded.joint_regressor_indices, loaded.joint_regressor_weights, 50),
-                               _overlap_regressor(tiny), atol=1e-8)
+    np.testing.assert_allclose(
+        dense(loaded.skin_indices, loaded.skin_weights, 4),
+        dense(tiny.skin_indices, tiny.skin_weights, 4),
+        atol=1e-8,
+    )
+    np.testing.assert_allclose(
+        dense(loaded.joint_regressor_indices, loaded.joint_regressor_weights, 50),
+        _overlap_regressor(tiny),
+        atol=1e-8,
+    )
     # centred load (humanshape's frame), truncated to 2 components, mm -> m
     centred = load_mpii_humanshape(tmp_path, n_components=2)
     np.testing.assert_allclose(centred.mean.mean(0), 0, atol=1e-9)
     assert centred.n_components == 2
-    np.testing.assert_allclose(centred.explained_variance, tiny.stddev[:2] ** 2 / np.sum(tiny.stddev**2))
+    np.testing.assert_allclose(
+        centred.explained_variance, tiny.stddev[:2] ** 2 / np.sum(tiny.stddev**2)
+    )
 
 
 def test_humanshape_pose_mapping(tiny, tmp_path, getkey):
     axes = np.array([[0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
     write_mpii_humanshape(tmp_path, tiny, axes=axes)
     model, rig = load_mpii_humanshape(tmp_path, return_rig=True)
-    vec = jnp.concatenate([0.3 * jr.normal(getkey(), (3,)), 100 * jr.normal(getkey(), (3,)),
-                           jnp.array([0.7]), 0.5 * jr.normal(getkey(), (3,)), jnp.array([1.2])])
+    vec = jnp.concatenate(
+        [
+            0.3 * jr.normal(getkey(), (3,)),
+            100 * jr.normal(getkey(), (3,)),
+            jnp.array([0.7]),
+            0.5 * jr.normal(getkey(), (3,)),
+            jnp.array([1.2]),
+        ]
+    )
     pose, sim = humanshape_pose(rig, vec)
     assert pose.shape == (4, 3)
     np.testing.assert_allclose(pose[0], 0)  # root: zero axis, dummy angle
@@ -489,7 +529,9 @@ def test_humanshape_pose_mapping(tiny, tmp_path, getkey):
         g = jnp.eye(4).at[:3, :3].set(rj).at[:3, 3].set((jnp.eye(3) - rj) @ q[j])
         ms.append(g if j == 0 else ms[model.parents[j]] @ g)
     w = np.zeros((50, 4))
-    np.add.at(w, (np.arange(50)[:, None], np.asarray(model.skin_indices)), np.asarray(model.skin_weights))
+    np.add.at(
+        w, (np.arange(50)[:, None], np.asarray(model.skin_indices)), np.asarray(model.skin_weights)
+    )
     hom = jnp.concatenate([rest, jnp.ones((50, 1))], axis=1)
     blended = jnp.einsum("vj,jab,vb->va", w, jnp.stack(ms), hom)[:, :3]
     s = vec[-1]

@@ -2,33 +2,73 @@
 
 from ._learn import (
     Compactness as Compactness,
+)
+from ._learn import (
     Generalization as Generalization,
+)
+from ._learn import (
     Specificity as Specificity,
+)
+from ._learn import (
     compactness as compactness,
+)
+from ._learn import (
     generalization as generalization,
+)
+from ._learn import (
     learn as learn,
+)
+from ._learn import (
     mean_vertex_distance as mean_vertex_distance,
+)
+from ._learn import (
     procrustes_align as procrustes_align,
+)
+from ._learn import (
     specificity as specificity,
 )
 from ._model import (
     SScapeModel as SScapeModel,
+)
+from ._model import (
     evaluate as evaluate,
+)
+from ._model import (
     rest_joints as rest_joints,
+)
+from ._model import (
     shape_vertices as shape_vertices,
+)
+from ._model import (
     truncate as truncate,
 )
 from ._mpii import (
     MM_TO_M as MM_TO_M,
+)
+from ._mpii import (
     HumanShapeRig as HumanShapeRig,
+)
+from ._mpii import (
     humanshape_pose as humanshape_pose,
+)
+from ._mpii import (
     joint_regressor_from_weights as joint_regressor_from_weights,
+)
+from ._mpii import (
     load_mpii_humanshape as load_mpii_humanshape,
+)
+from ._mpii import (
     write_mpii_humanshape as write_mpii_humanshape,
 )
 from ._serialize import (
     FORMAT_NAME as FORMAT_NAME,
+)
+from ._serialize import (
     FORMAT_VERSION as FORMAT_VERSION,
+)
+from ._serialize import (
     load_model as load_model,
+)
+from ._serialize import (
     save_model as save_model,
 )

@@ -1,9 +1,9 @@
 """Learning an S-SCAPE shape space from registered meshes, and its statistical quality measures.
 
 Follows the humanshape learning pipeline (Pishchulin et al. 2017, §3–5; humanshape `learnPCA.m`,
-`GeneralizedProcrustes.cpp`, `ErrorEvaluation.cpp`): rigid generalised Procrustes alignment, then PCA
-of the flattened vertex coordinates; compactness, generalization and specificity as defined by the
-humanshape evaluation code.
+`GeneralizedProcrustes.cpp`, `ErrorEvaluation.cpp`): rigid generalised Procrustes alignment, then
+PCA of the flattened vertex coordinates; compactness, generalization and specificity as defined by
+the humanshape evaluation code.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ from jaxtyping import Array, Float
 from .._kinematics import Similarity, umeyama
 from .._validate import check_array
 from ._model import SScapeModel
-
 
 # --------------------------------------------------------------------------------------------------
 # Generalised Procrustes alignment
@@ -74,23 +73,23 @@ def procrustes_align(
 ) -> tuple[Float[Array, "N V 3"], Similarity]:
     """Generalised Procrustes alignment of meshes in vertex correspondence.
 
-    With `reference=None` this is generalised Procrustes analysis: start from the first mesh (centred
-    at its vertex centroid), then repeat "align every mesh to the current mean (Umeyama/Kabsch), take
-    the new mean" until the relative change of the energy `sum_i ||X_i - mean||_F^2` is below `tol`
-    or `n_iter` rounds have run. The result keeps the first mesh's orientation with the mean centred
-    at the origin. With a `reference`, every mesh is aligned once to that fixed shape (ordinary
-    Procrustes; no iteration).
+    With `reference=None` this is generalised Procrustes analysis: start from the first mesh
+    (centred at its vertex centroid), then repeat "align every mesh to the current mean
+    (Umeyama/Kabsch), take the new mean" until the relative change of the energy `sum_i ||X_i -
+    mean||_F^2` is below `tol` or `n_iter` rounds have run. The result keeps the first mesh's
+    orientation with the mean centred at the origin. With a `reference`, every mesh is aligned once
+    to that fixed shape (ordinary Procrustes; no iteration).
 
     Rigid (rotation + translation) by default, as humanshape: its `GeneralizedProcrustes.cpp`
     centres each mesh at its vertex centroid and then, per round and per mesh, fits a 3x3 linear map
     by least squares to the leave-one-out mean of the other meshes, projects it to the nearest
-    orthogonal matrix (SVD, `U V^T`), *skips* the mesh for that round if the determinant is negative,
-    and stops when the change of `sum_{i<j} ||X_i - X_j||_F` is at most 1e-5 or after 100 rounds.
-    Differences here: the full mean (not leave-one-out) is the target, the optimal proper rotation
-    (Kabsch with the reflection fix) is used instead of projecting a least-squares linear map, and the
-    energy is the squared Frobenius form. All converge to the same alignment up to a global rigid
-    motion for well-posed data. `scale=True` adds a per-mesh scale (similarity GPA) with the mean's
-    size fixed to that of the initial reference.
+    orthogonal matrix (SVD, `U V^T`), *skips* the mesh for that round if the determinant is
+    negative, and stops when the change of `sum_{i<j} ||X_i - X_j||_F` is at most 1e-5 or after 100
+    rounds. Differences here: the full mean (not leave-one-out) is the target, the optimal proper
+    rotation (Kabsch with the reflection fix) is used instead of projecting a least-squares linear
+    map, and the energy is the squared Frobenius form. All converge to the same alignment up to a
+    global rigid motion for well-posed data. `scale=True` adds a per-mesh scale (similarity GPA)
+    with the mean's size fixed to that of the initial reference.
 
     **Arguments:**
 
@@ -100,8 +99,8 @@ def procrustes_align(
     - `n_iter`: maximum number of GPA rounds.
     - `tol`: relative energy-change stopping tolerance.
 
-    **Returns:** `(aligned, transforms)`: aligned meshes `(N, V, 3)` and a batched `Similarity` (leaves
-    with a leading `N` axis) with `aligned[i] = transforms[i].apply(meshes[i])`.
+    **Returns:** `(aligned, transforms)`: aligned meshes `(N, V, 3)` and a batched `Similarity`
+    (leaves with a leading `N` axis) with `aligned[i] = transforms[i].apply(meshes[i])`.
     """
     dims: dict[str, int] = {}
     check_array(meshes, "meshes", ("N", "V", 3), dims=dims)
@@ -112,7 +111,9 @@ def procrustes_align(
     meshes = jnp.asarray(meshes)
     if reference is not None:
         check_array(reference, "reference", (dims["V"], 3))
-        transforms, aligned = _align_to(meshes, jnp.asarray(reference, dtype=meshes.dtype), bool(scale))
+        transforms, aligned = _align_to(
+            meshes, jnp.asarray(reference, dtype=meshes.dtype), bool(scale)
+        )
     else:
         ref = meshes[0] - meshes[0].mean(0)
         transforms, aligned = _gpa(meshes, ref, bool(scale), int(n_iter), float(tol))
@@ -124,7 +125,8 @@ def procrustes_align(
 
 
 def _pca_host(x: np.ndarray):
-    """PCA of `(N, D)` data in float64: returns mean, components `(R, D)`, singular values `(R,)`."""
+    """PCA of `(N, D)` data in float64: returns mean, components `(R, D)`, singular values
+    `(R,)`."""
     mu = x.mean(axis=0)
     _, s, vt = np.linalg.svd(x - mu, full_matrices=False)
     r = max(min(x.shape[0] - 1, x.shape[1]), 0)
@@ -144,8 +146,10 @@ def _choose_components(ratio: np.ndarray, n_components, explained_variance) -> i
         if isinstance(n_components, bool) or not isinstance(n_components, (int, np.integer)):
             raise ValueError(f"`n_components` must be an int, got {type(n_components).__name__}.")
         if not 0 <= n_components <= r:
-            raise ValueError(f"`n_components` must lie in [0, {r}] (at most N-1 for N meshes), got "
-                             f"{n_components}.")
+            raise ValueError(
+                f"`n_components` must lie in [0, {r}] (at most N-1 for N meshes), got "
+                f"{n_components}."
+            )
         return int(n_components)
     if explained_variance is not None:
         ev = float(explained_variance)
@@ -176,12 +180,13 @@ def learn(
     """Learns an S-SCAPE shape space from meshes in vertex correspondence.
 
     Steps (humanshape `learnPCA.m`): optional rigid generalised Procrustes alignment
-    ([`bodyprior.sscape.procrustes_align`][]); PCA by SVD of the centred, flattened data in float64 on
-    the host; `stddev = singular values / sqrt(N - 1)` (unbiased; humanshape's `evalues` use `1/N`).
-    With a `template`, the aligned data are moved rigidly so that their mean best fits the template's
-    mean (humanshape `createModel.m` aligns the new mean to the old template), and the template's rig
-    is reused. Without a template, the rig comes from the keyword arguments; if none is given at all,
-    a single root joint at the vertex centroid with every vertex bound to it is used.
+    ([`bodyprior.sscape.procrustes_align`][]); PCA by SVD of the centred, flattened data in float64
+    on the host; `stddev = singular values / sqrt(N - 1)` (unbiased; humanshape's `evalues` use
+    `1/N`). With a `template`, the aligned data are moved rigidly so that their mean best fits the
+    template's mean (humanshape `createModel.m` aligns the new mean to the old template), and the
+    template's rig is reused. Without a template, the rig comes from the keyword arguments; if none
+    is given at all, a single root joint at the vertex centroid with every vertex bound to it is
+    used.
 
     **Arguments:**
 
@@ -192,8 +197,9 @@ def learn(
       reaches this fraction in `(0, 1]`. Neither: keep all `min(N - 1, 3V)` components.
     - `template`: optional model whose rig (`parents`, `joint_names`, joint regressor, skin weights)
       and frame are reused.
-    - `parents`, `joint_names`, `joint_regressor_indices`, `joint_regressor_weights`, `skin_indices`,
-      `skin_weights`: an explicit rig (all or none), see [`bodyprior.sscape.SScapeModel`][].
+    - `parents`, `joint_names`, `joint_regressor_indices`, `joint_regressor_weights`,
+      `skin_indices`, `skin_weights`: an explicit rig (all or none), see
+      [`bodyprior.sscape.SScapeModel`][].
     - `align`: run Procrustes alignment first (rigid unless `scale=True`).
     - `n_iter`: maximum number of GPA rounds.
 
@@ -221,7 +227,9 @@ def learn(
         if given:
             raise ValueError(f"Pass either `template` or an explicit rig, not both (got {given}).")
         if template.n_vertices != v:
-            raise ValueError(f"`template` has {template.n_vertices} vertices but `meshes` have {v}.")
+            raise ValueError(
+                f"`template` has {template.n_vertices} vertices but `meshes` have {v}."
+            )
         rig = {k: getattr(template, k) for k in rig_args}
     elif given:
         if len(given) != len(rig_args):
@@ -276,7 +284,8 @@ class Compactness(NamedTuple):
     variance: Array
     """Styner's `C(M) = sum_{k<=M} lambda_k` (model variances), shape `(K,)`."""
     std_error: Array
-    """Styner's `sigma_C(M) = sqrt(2 / n) C(M)` (NaN when `n_samples` is not given), shape `(K,)`."""
+    """Styner's `sigma_C(M) = sqrt(2 / n) C(M)` (NaN when `n_samples` is not given), shape
+    `(K,)`."""
 
 
 class Generalization(NamedTuple):
@@ -315,9 +324,9 @@ def mean_vertex_distance(a: Float[Array, "V 3"], b: Float[Array, "V 3"]) -> Floa
 def compactness(model: SScapeModel, n_samples: int | None = None) -> Compactness:
     """Compactness of a learned shape space (humanshape evalMode 0, fixed).
 
-    humanshape's code returns `ratio(M) * sqrt(2/n)`, Styner's standard-error factor misapplied; this
-    returns the cumulative explained-variance ratio (what should be plotted) and Styner's `C(M)` with
-    `sigma_C` separately. Model variances are `stddev**2`.
+    humanshape's code returns `ratio(M) * sqrt(2/n)`, Styner's standard-error factor misapplied;
+    this returns the cumulative explained-variance ratio (what should be plotted) and Styner's
+    `C(M)` with `sigma_C` separately. Model variances are `stddev**2`.
 
     **Arguments:**
 
@@ -361,7 +370,9 @@ def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
         y = xt - mu
         lam, u = jnp.linalg.eigh(y @ y.T)
         lam, u = lam[::-1][:m_max], u[:, ::-1][:, :m_max]
-        tiny = jnp.finfo(lam.dtype).eps * y.shape[0] * 100 * jnp.maximum(lam[0], 0) if m_max else 0.0
+        tiny = (
+            jnp.finfo(lam.dtype).eps * y.shape[0] * 100 * jnp.maximum(lam[0], 0) if m_max else 0.0
+        )
         valid = lam > tiny
         s = jnp.sqrt(jnp.where(valid, lam, 1.0))
         e = (y.T @ u) * jnp.where(valid, 1.0 / s, 0.0)  # (D, m_max), orthonormal columns
@@ -389,10 +400,10 @@ def generalization(
 
     For each left-out mesh `x_j` and each `M`: PCA on the other meshes (all `N - 1`, or a random
     subset of size `n_train` drawn with `seed`), `b = E_M^T (x_j - mu)`, `x_hat = mu + E_M b`, and
-    `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance. The meshes must already
-    be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in humanshape the
-    left-out mesh is not re-aligned. PCA uses the Gram matrix of the training set (run in float64).
-    Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
+    `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance. The meshes must
+    already be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in
+    humanshape the left-out mesh is not re-aligned. PCA uses the Gram matrix of the training set
+    (run in float64). Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
 
     **Arguments:**
 
@@ -419,10 +430,13 @@ def generalization(
         if not 1 <= t <= n - 1:
             raise ValueError(f"`n_train` must lie in [1, {n - 1}], got {n_train}.")
         rng = np.random.default_rng(seed)
-        idx = np.stack([np.sort(rng.choice(np.delete(np.arange(n), j), t, replace=False)) for j in range(n)])
+        idx = np.stack(
+            [np.sort(rng.choice(np.delete(np.arange(n), j), t, replace=False)) for j in range(n)]
+        )
     ms = _check_ms(n_components, t - 1, "at most the training-set size minus one")
-    errors = _generalization_kernel(jnp.asarray(meshes), jnp.asarray(idx, dtype=jnp.int32), ms,
-                                    max(1, int(chunk_size)))
+    errors = _generalization_kernel(
+        jnp.asarray(meshes), jnp.asarray(idx, dtype=jnp.int32), ms, max(1, int(chunk_size))
+    )
     mean = errors.mean(0)
     std = errors.std(0, ddof=1) if n > 1 else jnp.zeros_like(mean)
     return Generalization(ms, mean, std, std / np.sqrt(max(n - 1, 1)), errors)
@@ -441,7 +455,9 @@ def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_si
     samples = m + (z * jnp.sqrt(jnp.maximum(lam, 0.0))) @ u.T  # (S, m_max)
 
     def nearest(b):
-        recon = jnp.stack([mean + jnp.tensordot(b[:k], basis[:k], axes=1) for k in ms])  # (nM, V, 3)
+        recon = jnp.stack(
+            [mean + jnp.tensordot(b[:k], basis[:k], axes=1) for k in ms]
+        )  # (nM, V, 3)
         d = jax.lax.map(
             lambda xi: jnp.mean(jnp.linalg.norm(recon - xi[None], axis=-1), axis=-1),
             x,
@@ -466,9 +482,10 @@ def specificity(
     The training meshes are projected onto the first `M_max = max(n_components)` components; a
     Gaussian (ML mean and full covariance, `1/n`) is fitted to those coefficients and `n_samples`
     samples `m + U Lambda^{1/2} z`, `z ~ N(0, I)`, are drawn. Each sample is reconstructed with its
-    first `M` coefficients only, and `s_i(M) = min_j D(y_i, x_j)` over all training meshes. For a model
-    learned from `meshes` this equals `b_k ~ N(0, lambda_k)` with `lambda_k` the `1/n` variances. The
-    paper uses 10,000 samples. Jitted; samples and meshes are processed `chunk_size` at a time.
+    first `M` coefficients only, and `s_i(M) = min_j D(y_i, x_j)` over all training meshes. For a
+    model learned from `meshes` this equals `b_k ~ N(0, lambda_k)` with `lambda_k` the `1/n`
+    variances. The paper uses 10,000 samples. Jitted; samples and meshes are processed
+    `chunk_size` at a time.
 
     **Arguments:**
 

@@ -2,16 +2,16 @@
 
 S-SCAPE (Pishchulin et al. 2017, after Jain et al. 2010) is a PCA shape space over the vertices of a
 fixed template, rigged with linear blend skinning. Joint positions are not stored: they are a fixed
-linear function of the *shaped* rest vertices (humanshape ties each joint to the surface region shared
-by two adjacent body segments), so they follow the body shape exactly.
+linear function of the *shaped* rest vertices (humanshape ties each joint to the surface region
+shared by two adjacent body segments), so they follow the body shape exactly.
 """
 
 from __future__ import annotations
 
-import numpy as np
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._kinematics import Similarity, forward_kinematics, validate_parents
@@ -65,7 +65,9 @@ class SScapeModel(eqx.Module):
     skin_indices: Int[Array, "V Kw"] = eqx.field(converter=_int_leaf)
     skin_weights: Float[Array, "V Kw"] = eqx.field(converter=_float_leaf)
     parents: tuple[int, ...] = eqx.field(static=True, converter=lambda p: tuple(int(i) for i in p))
-    joint_names: tuple[str, ...] = eqx.field(static=True, converter=lambda n: tuple(str(s) for s in n))
+    joint_names: tuple[str, ...] = eqx.field(
+        static=True, converter=lambda n: tuple(str(s) for s in n)
+    )
 
     def __check_init__(self):
         dims: dict[str, int] = {}
@@ -74,18 +76,31 @@ class SScapeModel(eqx.Module):
         check_array(self.stddev, "stddev", ("K",), dims=dims, finite=False)
         check_array(self.explained_variance, "explained_variance", ("K",), dims=dims, finite=False)
         check_array(self.faces, "faces", (None, 3), integer=True)
-        check_array(self.joint_regressor_indices, "joint_regressor_indices", ("J", "M"), dims=dims,
-                    integer=True)
-        check_array(self.joint_regressor_weights, "joint_regressor_weights", ("J", "M"), dims=dims,
-                    finite=False)
+        check_array(
+            self.joint_regressor_indices,
+            "joint_regressor_indices",
+            ("J", "M"),
+            dims=dims,
+            integer=True,
+        )
+        check_array(
+            self.joint_regressor_weights,
+            "joint_regressor_weights",
+            ("J", "M"),
+            dims=dims,
+            finite=False,
+        )
         check_array(self.skin_indices, "skin_indices", ("V", "Kw"), dims=dims, integer=True)
         check_array(self.skin_weights, "skin_weights", ("V", "Kw"), dims=dims, finite=False)
         n_joints = dims["J"]
         if len(self.parents) != n_joints:
-            raise ValueError(f"`parents` must have {n_joints} entries (one per joint), got {len(self.parents)}.")
+            raise ValueError(
+                f"`parents` must have {n_joints} entries (one per joint), got {len(self.parents)}."
+            )
         if len(self.joint_names) != n_joints:
             raise ValueError(
-                f"`joint_names` must have {n_joints} entries (one per joint), got {len(self.joint_names)}."
+                f"`joint_names` must have {n_joints} entries (one per joint), got "
+                f"{len(self.joint_names)}."
             )
         validate_parents(self.parents)
         n_vertices = dims["V"]
@@ -95,8 +110,10 @@ class SScapeModel(eqx.Module):
             ("skin_indices", self.skin_indices, n_joints),
         ):
             if not is_tracer(arr) and arr.size and (int(arr.min()) < 0 or int(arr.max()) >= hi):
-                raise ValueError(f"`{name}` must hold indices in [0, {hi - 1}], got [{int(arr.min())}, "
-                                 f"{int(arr.max())}].")
+                raise ValueError(
+                    f"`{name}` must hold indices in [0, {hi - 1}], got [{int(arr.min())}, "
+                    f"{int(arr.max())}]."
+                )
 
     @property
     def n_vertices(self) -> int:
@@ -118,8 +135,15 @@ class SScapeModel(eqx.Module):
         """Method form of [`bodyprior.sscape.rest_joints`][]."""
         return rest_joints(self, vertices)
 
-    def evaluate(self, shape_coeffs, pose, transform=None, root_translation=None, *,
-                 pose_rep: str = "axis_angle"):
+    def evaluate(
+        self,
+        shape_coeffs,
+        pose,
+        transform=None,
+        root_translation=None,
+        *,
+        pose_rep: str = "axis_angle",
+    ):
         """Method form of [`bodyprior.sscape.evaluate`][]."""
         return evaluate(self, shape_coeffs, pose, transform, root_translation, pose_rep=pose_rep)
 
@@ -179,12 +203,13 @@ def rest_joints(model: SScapeModel, vertices: Float[Array, "V 3"]) -> Float[Arra
 
 def _pose_to_matrices(pose, pose_rep: str, n_joints: int):
     if pose_rep.startswith("euler_"):
-        order = pose_rep[len("euler_"):]
+        order = pose_rep[len("euler_") :]
         check_array(pose, "pose", (n_joints, 3))
         return jax.vmap(lambda a: euler_to_matrix(a, order))(jnp.asarray(pose))
     if pose_rep not in _REP_SHAPES:
         raise ValueError(
-            f"`pose_rep` must be one of {sorted(_REP_SHAPES)} or 'euler_<ORDER>' (e.g. 'euler_ZYX'), "
+            f"`pose_rep` must be one of {sorted(_REP_SHAPES)} or 'euler_<ORDER>' (e.g. "
+            f"'euler_ZYX'), "
             f"got {pose_rep!r}."
         )
     check_array(pose, "pose", (n_joints, *_REP_SHAPES[pose_rep]))
@@ -196,16 +221,16 @@ def evaluate(
     shape_coeffs: Float[Array, " Kp"],
     pose: Array,
     transform: Similarity | None = None,
-    root_translation: Float[Array, "3"] | None = None,
+    root_translation: Float[Array, 3] | None = None,
     *,
     pose_rep: str = "axis_angle",
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
     """Shapes, poses and places one body.
 
-    Rest vertices come from [`bodyprior.sscape.shape_vertices`][], joints from the regressor applied to
-    them, then forward kinematics (the convention of `docs/architecture.md`: local rotations in
-    world-aligned rest axes) and linear blend skinning; the global similarity `transform` is applied
-    last, to vertices and joints alike (`x -> s R x + t`).
+    Rest vertices come from [`bodyprior.sscape.shape_vertices`][], joints from the regressor
+    applied to them, then forward kinematics (the convention of `docs/architecture.md`: local
+    rotations in world-aligned rest axes) and linear blend skinning; the global similarity
+    `transform` is applied last, to vertices and joints alike (`x -> s R x + t`).
 
     Pure; jit/vmap/grad it from outside (`pose_rep` must be static, e.g. via `eqx.filter_jit`).
     Written for one body: `jax.vmap` over coefficients/poses for batches.
@@ -215,8 +240,8 @@ def evaluate(
     - `model`: an [`bodyprior.sscape.SScapeModel`][].
     - `shape_coeffs`: shape `(K',)`, `K' <= K`, in standard deviations.
     - `pose`: per-joint local rotations, `(J, 3)` axis-angle by default; `(J, 3, 3)` for
-      `pose_rep="matrix"`, `(J, 4)` wxyz for `"quaternion"`, `(J, 6)` for `"sixd"`, `(J, 3)` angles for
-      `"euler_<ORDER>"` (e.g. `"euler_ZYX"`, the order string is passed to `euler_to_matrix`).
+      `pose_rep="matrix"`, `(J, 4)` wxyz for `"quaternion"`, `(J, 6)` for `"sixd"`, `(J, 3)` angles
+      for `"euler_<ORDER>"` (e.g. `"euler_ZYX"`, the order string is passed to `euler_to_matrix`).
     - `transform`: optional global `Similarity`, applied after skinning.
     - `root_translation`: shape `(3,)`, default zeros; moves the root joint before `transform`.
     - `pose_rep`: rotation representation of `pose` (static).
@@ -233,11 +258,15 @@ def evaluate(
     else:
         root_translation = jnp.asarray(check_array(root_translation, "root_translation", (3,)))
     if transform is not None and not isinstance(transform, Similarity):
-        raise ValueError(f"`transform` must be a Similarity or None, got {type(transform).__name__}.")
+        raise ValueError(
+            f"`transform` must be a Similarity or None, got {type(transform).__name__}."
+        )
 
     rest = shape_vertices(model, c)
     joints = rest_joints(model, rest)
-    transforms, posed_joints = forward_kinematics(model.parents, rotations, joints, root_translation)
+    transforms, posed_joints = forward_kinematics(
+        model.parents, rotations, joints, root_translation
+    )
     posed = lbs(rest, model.skin_indices, model.skin_weights, transforms)
     if transform is not None:
         posed = transform.apply(posed)

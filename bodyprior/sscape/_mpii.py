@@ -1,7 +1,8 @@
 """Reading (and writing) MPII humanshape S-SCAPE model directories.
 
 A humanshape model directory (e.g. `caesar/`, `caesar-norm-wsx/`, `caesar-norm-nh/`, distributed by
-MPI for non-commercial use only, **not redistributable**; bodyprior ships none of these files) holds:
+MPI for non-commercial use only, **not redistributable**; bodyprior ships none of these files)
+holds:
 
 - `model.dat` (ASCII, whitespace separated): header `NV NF NJ NS`; `NV` vertex lines
   `x y z  j_1 w_1 ... j_NS w_NS` (1-based joint ids, padding `1 0`); `NF` face lines (0-based); `NJ`
@@ -37,8 +38,8 @@ _HS25_NAMES = {
     1: "root", 2: "l_hip_x", 3: "l_hip_y", 4: "l_knee", 5: "l_ankle", 6: "r_hip_x", 7: "r_hip_y",
     8: "r_knee", 9: "r_ankle", 10: "thorax_z", 11: "thorax_x", 12: "neck", 13: "l_shoulder_1",
     14: "l_shoulder_2", 15: "l_shoulder_3", 16: "l_elbow", 17: "l_wrist", 18: "r_shoulder_1",
-    19: "r_shoulder_2", 20: "r_shoulder_3", 21: "r_elbow", 22: "r_wrist", 23: "r_hip_z", 24: "l_hip_z",
-    25: "thorax_y",
+    19: "r_shoulder_2", 20: "r_shoulder_3", 21: "r_elbow", 22: "r_wrist", 23: "r_hip_z",
+    24: "l_hip_z", 25: "thorax_y",
 }  # fmt: skip
 
 
@@ -71,20 +72,26 @@ def _read_mat(path: str, var: str) -> np.ndarray:
             import h5py  # type: ignore
         except ImportError:
             raise ValueError(
-                f"{path!r} is a MATLAB v7.3 (HDF5) file; install h5py to read it, or re-save it in MATLAB "
+                f"{path!r} is a MATLAB v7.3 (HDF5) file; install h5py to read it, or re-save it "
+                "in MATLAB "
                 "with save(..., '-v7')."
             ) from None
         try:
             with h5py.File(path, "r") as hf:
                 if var not in hf:
-                    raise ValueError(f"{path!r} has no variable {var!r} (found {sorted(hf.keys())}).")
-                return np.asarray(hf[var], dtype=np.float64).T  # HDF5 stores MATLAB arrays transposed
+                    raise ValueError(
+                        f"{path!r} has no variable {var!r} (found {sorted(hf.keys())})."
+                    )
+                # HDF5 stores MATLAB arrays transposed
+                return np.asarray(hf[var], dtype=np.float64).T
         except OSError as e:
             raise ValueError(f"Could not read {path!r} as HDF5: {e}") from e
     try:
         data = scipy.io.loadmat(path, variable_names=[var])
     except NotImplementedError as e:
-        raise ValueError(f"{path!r}: unsupported .mat version ({e}); re-save with save(..., '-v7').") from e
+        raise ValueError(
+            f"{path!r}: unsupported .mat version ({e}); re-save with save(..., '-v7')."
+        ) from e
     except Exception as e:  # noqa: BLE001 - scipy raises several types for malformed files
         raise ValueError(f"Could not read {path!r} as a MATLAB .mat file: {e}") from e
     if var not in data:
@@ -108,12 +115,15 @@ def _read_model_dat(path: str):
         raise ValueError(f"{path!r}: model.dat must start with the header 'NV NF NJ NS'.")
     header = nums[:4]
     if np.any(header != np.round(header)) or np.any(header < 1):
-        raise ValueError(f"{path!r}: header 'NV NF NJ NS' must hold positive integers, got {header}.")
+        raise ValueError(
+            f"{path!r}: header 'NV NF NJ NS' must hold positive integers, got {header}."
+        )
     nv, nf, nj, ns = (int(h) for h in header)
     need = 4 + nv * (3 + 2 * ns) + nf * 3 + nj * 8
     if nums.size < need:
         raise ValueError(
-            f"{path!r}: model.dat is truncated: header NV={nv} NF={nf} NJ={nj} NS={ns} needs {need} numbers, "
+            f"{path!r}: model.dat is truncated: header NV={nv} NF={nf} NJ={nj} NS={ns} needs "
+            f"{need} numbers, "
             f"file has {nums.size}."
         )
     o = 4
@@ -125,7 +135,11 @@ def _read_model_dat(path: str):
     verts = vblock[:, :3]
     pairs = vblock[:, 3:].reshape(nv, ns, 2)
     skin_ids, skin_w = pairs[..., 0], pairs[..., 1]
-    for name, arr in (("faces", faces), ("skin joint ids", skin_ids), ("joint ids/parents", joints[:, [0, 7]])):
+    for name, arr in (
+        ("faces", faces),
+        ("skin joint ids", skin_ids),
+        ("joint ids/parents", joints[:, [0, 7]]),
+    ):
         if np.any(arr != np.round(arr)):
             raise ValueError(f"{path!r}: {name} must be integers.")
     faces = faces.astype(np.int64)
@@ -161,7 +175,9 @@ def _joint_order(parent_ids: np.ndarray) -> list[int]:
     nj = parent_ids.shape[0]
     roots = [i + 1 for i in range(nj) if parent_ids[i] == 0]
     if len(roots) != 1:
-        raise ValueError(f"model.dat: the joint tree must have exactly one root (parent 0), got ids {roots}.")
+        raise ValueError(
+            f"model.dat: the joint tree must have exactly one root (parent 0), got ids {roots}."
+        )
     children: dict[int, list[int]] = {i: [] for i in range(1, nj + 1)}
     for i in range(nj):
         p = int(parent_ids[i])
@@ -183,10 +199,10 @@ def joint_regressor_from_weights(dense_w: np.ndarray, parent_ids: np.ndarray) ->
     """humanshape's surface-tied joint regressor (`updateJntPos`), dense `(NJ, NV)`, rows by id.
 
     Joint `i` is tied to the segment `d(i)`: `i` itself if it carries skin weight, else the first
-    weighted joint down its single-child chain. With `p` the nearest weighted ancestor of `d(i)`, the
-    joint is the centroid of the vertices weighted by `min(W[:, d], W[:, p])` (the skin shared by the two
-    segments); the root segment uses its own weights. For the released 25-joint rig this reproduces
-    the table of `updateJntPos` exactly (e.g. hip ids 2, 3, 24 -> `c(3, 1)`).
+    weighted joint down its single-child chain. With `p` the nearest weighted ancestor of `d(i)`,
+    the joint is the centroid of the vertices weighted by `min(W[:, d], W[:, p])` (the skin shared
+    by the two segments); the root segment uses its own weights. For the released 25-joint rig this
+    reproduces the table of `updateJntPos` exactly (e.g. hip ids 2, 3, 24 -> `c(3, 1)`).
     """
     nv, nj = dense_w.shape
     weighted = dense_w.sum(axis=0) > 0
@@ -200,7 +216,8 @@ def joint_regressor_from_weights(dense_w: np.ndarray, parent_ids: np.ndarray) ->
         while not weighted[d - 1]:
             if len(children[d]) != 1:
                 raise ValueError(
-                    f"model.dat: joint {i} carries no skin weight and has no single-child chain to a "
+                    f"model.dat: joint {i} carries no skin weight and has no single-child chain "
+                    "to a "
                     "weighted segment, so its surface position is undefined."
                 )
             d = children[d][0]
@@ -210,7 +227,8 @@ def joint_regressor_from_weights(dense_w: np.ndarray, parent_ids: np.ndarray) ->
         w = dense_w[:, d - 1] if p == 0 else np.minimum(dense_w[:, d - 1], dense_w[:, p - 1])
         if w.sum() <= 0:
             raise ValueError(
-                f"model.dat: segments {d} and {p} share no skinned vertices, so joint {i} is undefined."
+                f"model.dat: segments {d} and {p} share no skinned vertices, so joint {i} is "
+                "undefined."
             )
         reg[i - 1] = w / w.sum()
     return reg
@@ -245,27 +263,28 @@ def load_mpii_humanshape(
       x = subject's left, facing -y) already matches bodyprior's.
     - Mean: `meanShape.mat` `points` (full precision; the `model.dat` vertex block is the same mean
       printed with `%f`). With `center=True` (humanshape's `centerModel`) the centroid of the
-      `model.dat` vertices is subtracted, so the global rotation of a humanshape pose is about the origin.
+      `model.dat` vertices is subtracted, so the global rotation of a humanshape pose is about the
+      origin.
     - Basis: `evectors` rows reshaped from blocked `[x.., y.., z..]` to `(V, 3)`; already unit.
-      `stddev = sqrt(evalues) * unit_scale`. humanshape's `evalues` use `1/n`, so these are ML standard
-      deviations (those from [`bodyprior.sscape.learn`][] use `1/(n-1)`). A humanshape shape vector
-      `beta` (mm) equals `c * sqrt(evalues)` for our coefficients `c`. `explained_variance` is relative to
-      the sum of all `evalues` in the file.
-    - Joints: one model joint per humanshape joint id (25 for the released rig), ordered depth-first from
-      the root (children by ascending id); `joint_names` are the joint roles for the released 25-joint rig
-      (`"root"`, `"l_hip_z"`, ...) and `"joint<id>"` otherwise; the ids are in the returned rig. Joint
-      positions are recomputed from the surface as humanshape does
+      `stddev = sqrt(evalues) * unit_scale`. humanshape's `evalues` use `1/n`, so these are ML
+      standard deviations (those from [`bodyprior.sscape.learn`][] use `1/(n-1)`). A humanshape
+      shape vector `beta` (mm) equals `c * sqrt(evalues)` for our coefficients `c`.
+      `explained_variance` is relative to the sum of all `evalues` in the file.
+    - Joints: one model joint per humanshape joint id (25 for the released rig), ordered
+      depth-first from the root (children by ascending id); `joint_names` are the joint roles for
+      the released 25-joint rig (`"root"`, `"l_hip_z"`, ...) and `"joint<id>"` otherwise; the ids
+      are in the returned rig. Joint positions are recomputed from the surface as humanshape does
       ([`bodyprior.sscape.joint_regressor_from_weights`][]); those stored in the file are ignored.
     - Skin weights: the `NS` influence pairs are accumulated per joint and stored top-k sparse.
 
     Pose: humanshape's kinematics (product of exponentials of rest-frame twists) is the same as
     bodyprior's convention, so a humanshape pose vector maps exactly via
     [`bodyprior.sscape.humanshape_pose`][]: joint `i` gets axis-angle `theta_i * axis_i`, the global
-    rotation/translation/scale become a `Similarity`. What cannot be represented in the model itself:
-    the one-degree-of-freedom hinge constraint (each model joint accepts a full 3-DoF rotation, a
-    superset; the hinge axes are kept only in the returned rig), and the humanshape root joint's dummy
-    angle (entry 7, no effect). humanshape's optional dual-quaternion path is unused by it and not mapped
-    (bodyprior evaluates with LBS, as humanshape does).
+    rotation/translation/scale become a `Similarity`. What cannot be represented in the model
+    itself: the one-degree-of-freedom hinge constraint (each model joint accepts a full 3-DoF
+    rotation, a superset; the hinge axes are kept only in the returned rig), and the humanshape
+    root joint's dummy angle (entry 7, no effect). humanshape's optional dual-quaternion path is
+    unused by it and not mapped (bodyprior evaluates with LBS, as humanshape does).
 
     **Arguments:**
 
@@ -295,18 +314,25 @@ def load_mpii_humanshape(
         )
     n_file = evectors.shape[0]
     if evalues.shape[0] < n_file:
-        raise ValueError(f"evalues.mat: `evalues` has {evalues.shape[0]} entries, evectors has {n_file} rows.")
+        raise ValueError(
+            f"evalues.mat: `evalues` has {evalues.shape[0]} entries, evectors has {n_file} rows."
+        )
     evalues = evalues[:n_file]
     if not (np.all(np.isfinite(evectors)) and np.all(np.isfinite(evalues))) or np.any(evalues < 0):
         raise ValueError("evectors.mat/evalues.mat must be finite with non-negative eigenvalues.")
     norms = np.linalg.norm(evectors, axis=1)
     if np.any(np.abs(norms - 1) > 1e-3):
-        raise ValueError(f"evectors.mat: eigenvectors must have unit norm, got norms in [{norms.min()}, {norms.max()}].")
+        raise ValueError(
+            f"evectors.mat: eigenvectors must have unit norm, got norms in [{norms.min()}, "
+            f"{norms.max()}]."
+        )
     mean_path = os.path.join(directory, "meanShape.mat")
     if os.path.exists(mean_path):
         mean = _read_mat(mean_path, "points")
         if mean.shape != (nv, 3):
-            raise ValueError(f"meanShape.mat: `points` must have shape ({nv}, 3), got {mean.shape}.")
+            raise ValueError(
+                f"meanShape.mat: `points` must have shape ({nv}, 3), got {mean.shape}."
+            )
     else:
         mean = dat["verts"]
     k = n_file if n_components is None else int(n_components)
@@ -324,13 +350,18 @@ def load_mpii_humanshape(
 
     order = _joint_order(dat["parent_ids"])  # model index -> id
     index_of = {jid: n for n, jid in enumerate(order)}
-    parents = tuple(-1 if dat["parent_ids"][jid - 1] == 0 else index_of[int(dat["parent_ids"][jid - 1])]
-                    for jid in order)
+    parents = tuple(
+        -1 if dat["parent_ids"][jid - 1] == 0 else index_of[int(dat["parent_ids"][jid - 1])]
+        for jid in order
+    )
     names = tuple(_HS25_NAMES[jid] if nj == 25 else f"joint{jid}" for jid in order)
 
     dense_w = np.zeros((nv, nj))
-    np.add.at(dense_w, (np.repeat(np.arange(nv), dat["skin_ids"].shape[1]), dat["skin_ids"].ravel() - 1),
-              dat["skin_w"].ravel())
+    np.add.at(
+        dense_w,
+        (np.repeat(np.arange(nv), dat["skin_ids"].shape[1]), dat["skin_ids"].ravel() - 1),
+        dat["skin_w"].ravel(),
+    )
     if np.any(dense_w.sum(axis=1) <= 0):
         raise ValueError("model.dat: every vertex needs a positive total skin weight.")
     reg = joint_regressor_from_weights(dense_w, dat["parent_ids"])
@@ -382,7 +413,9 @@ def humanshape_pose(rig: HumanShapeRig, pose_vector) -> tuple[jnp.ndarray, Simil
     nj = rig.ids.shape[0]
     p = check_array(pose_vector, "pose_vector", (None,))
     if p.shape[0] not in (6 + nj, 7 + nj):
-        raise ValueError(f"`pose_vector` must have {6 + nj} or {7 + nj} entries (with scale), got {p.shape[0]}.")
+        raise ValueError(
+            f"`pose_vector` must have {6 + nj} or {7 + nj} entries (with scale), got {p.shape[0]}."
+        )
     p = jnp.asarray(p)
     theta = p[6 + rig.ids - 1]
     pose = theta[:, None] * jnp.asarray(rig.axes, dtype=p.dtype)
@@ -401,12 +434,12 @@ def write_mpii_humanshape(
     """Writes `model` as a humanshape model directory (`model.dat`, `evectors.mat`, `evalues.mat`,
     `meanShape.mat`, MATLAB v5), the format read by [`bodyprior.sscape.load_mpii_humanshape`][].
 
-    Joint ids are model index + 1 (the model's joint order, which must list parents before children to
-    be read back in the same order); the `NS` influence pairs are the model's sparse skin weights
-    (zero-weight slots written as humanshape's `1 0` padding). Written joint positions are the mean's
-    rest joints (humanshape ignores them). The model's joint regressor is **not** stored: humanshape
-    recomputes joints from skin-weight overlaps, so a reloaded model has that regressor. `evalues` are
-    `(stddev / unit_scale)**2`. Hinge `axes` `(J, 3)` default to zeros.
+    Joint ids are model index + 1 (the model's joint order, which must list parents before children
+    to be read back in the same order); the `NS` influence pairs are the model's sparse skin weights
+    (zero-weight slots written as humanshape's `1 0` padding). Written joint positions are the
+    mean's rest joints (humanshape ignores them). The model's joint regressor is **not** stored:
+    humanshape recomputes joints from skin-weight overlaps, so a reloaded model has that regressor.
+    `evalues` are `(stddev / unit_scale)**2`. Hinge `axes` `(J, 3)` default to zeros.
 
     **Arguments:**
 
@@ -418,9 +451,15 @@ def write_mpii_humanshape(
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
     nj, nv = model.n_joints, model.n_vertices
-    axes = np.zeros((nj, 3)) if axes is None else np.asarray(check_array(axes, "axes", (nj, 3)), np.float64)
+    axes = (
+        np.zeros((nj, 3))
+        if axes is None
+        else np.asarray(check_array(axes, "axes", (nj, 3)), np.float64)
+    )
     if any(p >= j for j, p in enumerate(model.parents) if j > 0):
-        raise ValueError("`model.parents` must list parents before children to be written as model.dat.")
+        raise ValueError(
+            "`model.parents` must list parents before children to be written as model.dat."
+        )
     directory = os.fspath(directory)
     os.makedirs(directory, exist_ok=True)
     mean = np.asarray(model.mean, np.float64) / unit_scale
@@ -439,7 +478,10 @@ def write_mpii_humanshape(
     lines += [f"{a} {b} {c}" for a, b, c in faces]
     for j in range(nj):
         a, q = axes[j], joints[j]
-        lines.append(f"{j + 1} {a[0]:.9g} {a[1]:.9g} {a[2]:.9g} {q[0]:f} {q[1]:f} {q[2]:f} {model.parents[j] + 1}")
+        lines.append(
+            f"{j + 1} {a[0]:.9g} {a[1]:.9g} {a[2]:.9g} {q[0]:f} {q[1]:f} {q[2]:f} "
+            f"{model.parents[j] + 1}"
+        )
     with open(os.path.join(directory, "model.dat"), "w") as f:
         f.write("\n".join(lines) + "\n")
     evectors = basis.transpose(0, 2, 1).reshape(k, 3 * nv)

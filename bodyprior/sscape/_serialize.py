@@ -5,11 +5,12 @@ Format `bodyprior.sscape`, version 1: one zip file (stored, not compressed) hold
 - `metadata.json`: `{"format": "bodyprior.sscape", "version": 1, "parents": [...],
   "joint_names": [...], "leaves": {name: {"shape": [...], "dtype": "float64"}, ...},
   "leaves_sha256": "..."}`;
-- `leaves.eqx`: the array leaves, in sorted field-name order, written by `eqx.tree_serialise_leaves`.
+- `leaves.eqx`: the array leaves, in sorted field-name order, written by
+  `eqx.tree_serialise_leaves`.
 
-Writes are atomic (temporary file in the target directory, fsync, `os.replace`). Loading validates the
-format name, version, shapes, dtypes and checksum and raises `ValueError` on any mismatch; it never
-touches the network.
+Writes are atomic (temporary file in the target directory, fsync, `os.replace`). Loading validates
+the format name, version, shapes, dtypes and checksum and raises `ValueError` on any mismatch; it
+never touches the network.
 """
 
 from __future__ import annotations
@@ -72,7 +73,9 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
         "leaves": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in arrays.items()},
         "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory)
+    fd, tmp = tempfile.mkstemp(
+        prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory
+    )
     try:
         with os.fdopen(fd, "wb") as f:
             with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
@@ -98,8 +101,8 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
 def load_model(path: str | os.PathLike) -> SScapeModel:
     """Reads a model written by [`bodyprior.sscape.save_model`][], validating it.
 
-    **Raises:** `ValueError` if the file is missing, not a `bodyprior.sscape` file, of another version,
-    or corrupted (checksum, shapes or dtypes disagree with the metadata).
+    **Raises:** `ValueError` if the file is missing, not a `bodyprior.sscape` file, of another
+    version, or corrupted (checksum, shapes or dtypes disagree with the metadata).
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
@@ -108,7 +111,9 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
         with zipfile.ZipFile(path, "r") as zf:
             names = set(zf.namelist())
             if not {"metadata.json", "leaves.eqx"} <= names:
-                raise ValueError(f"{path!r} is not a {FORMAT_NAME} file (missing metadata.json/leaves.eqx).")
+                raise ValueError(
+                    f"{path!r} is not a {FORMAT_NAME} file (missing metadata.json/leaves.eqx)."
+                )
             raw_meta = zf.read("metadata.json")
             payload = zf.read("leaves.eqx")
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as e:
@@ -120,10 +125,12 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise ValueError(f"{path!r}: metadata.json is not valid JSON: {e}") from e
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
-        raise ValueError(f"{path!r}: format must be {FORMAT_NAME!r}, got {meta.get('format') if isinstance(meta, dict) else meta!r}.")
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise ValueError(f"{path!r}: format must be {FORMAT_NAME!r}, got {got!r}.")
     if meta.get("version") != FORMAT_VERSION:
         raise ValueError(
-            f"{path!r}: unsupported {FORMAT_NAME} version {meta.get('version')!r}; this bodyprior reads "
+            f"{path!r}: unsupported {FORMAT_NAME} version {meta.get('version')!r}; this bodyprior "
+            f"reads "
             f"version {FORMAT_VERSION}."
         )
     if hashlib.sha256(payload).hexdigest() != meta.get("leaves_sha256"):
@@ -132,7 +139,9 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
     if not isinstance(spec, dict) or set(spec) != set(_LEAVES):
         raise ValueError(f"{path!r}: metadata must describe exactly the leaves {list(_LEAVES)}.")
     try:
-        like = {k: np.zeros(tuple(spec[k]["shape"]), dtype=np.dtype(spec[k]["dtype"])) for k in _LEAVES}
+        like = {
+            k: np.zeros(tuple(spec[k]["shape"]), dtype=np.dtype(spec[k]["dtype"])) for k in _LEAVES
+        }
     except (TypeError, ValueError, KeyError) as e:
         raise ValueError(f"{path!r}: invalid leaf shape/dtype in metadata: {e}") from e
     try:
