@@ -362,20 +362,27 @@ def _check_ms(n_components, upper: int, what: str) -> tuple[int, ...]:
 def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
     n, v, _ = x.shape
     flat = x.reshape(n, v * 3)
+    flat = flat - flat.mean(0)  # global centring keeps the Gram-matrix centring well conditioned
+    gram = flat @ flat.T  # (N, N), computed once for all left-out meshes
     m_max = max(ms)
 
     def one(j, idx):
-        xt = flat[idx]  # (T, D)
-        mu = xt.mean(0)
-        y = xt - mu
-        lam, u = jnp.linalg.eigh(y @ y.T)
+        # PCA of the training subset `idx` via its centred Gram matrix (sliced from `gram`, so the
+        # per-mesh cost is O(T^3 + N D M) instead of O(T^2 D)).
+        t = idx.shape[0]
+        gs = gram[idx][:, idx]
+        row = gs.mean(1)
+        k = gs - row[:, None] - row[None, :] + row.mean()
+        lam, u = jnp.linalg.eigh(0.5 * (k + k.T))
         lam, u = lam[::-1][:m_max], u[:, ::-1][:, :m_max]
-        tiny = (
-            jnp.finfo(lam.dtype).eps * y.shape[0] * 100 * jnp.maximum(lam[0], 0) if m_max else 0.0
-        )
+        tiny = jnp.finfo(lam.dtype).eps * t * 100 * jnp.maximum(lam[0], 0) if m_max else 0.0
         valid = lam > tiny
-        s = jnp.sqrt(jnp.where(valid, lam, 1.0))
-        e = (y.T @ u) * jnp.where(valid, 1.0 / s, 0.0)  # (D, m_max), orthonormal columns
+        inv_s = jnp.where(valid, 1.0 / jnp.sqrt(jnp.where(valid, lam, 1.0)), 0.0)
+        weights = jnp.zeros((n,), flat.dtype).at[idx].add(1.0 / t)
+        mu = weights @ flat  # (D,) training mean
+        scatter = jnp.zeros((n, m_max), flat.dtype).at[idx].set(u)
+        # E = Y^T U / s with Y = flat[idx] - mu: orthonormal columns, shape (D, m_max).
+        e = (flat.T @ scatter - mu[:, None] * u.sum(0)[None]) * inv_s
         d = flat[j] - mu
         b = e.T @ d
         out = []
@@ -402,8 +409,10 @@ def generalization(
     subset of size `n_train` drawn with `seed`), `b = E_M^T (x_j - mu)`, `x_hat = mu + E_M b`, and
     `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance. The meshes must
     already be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in
-    humanshape the left-out mesh is not re-aligned. PCA uses the Gram matrix of the training set
-    (run in float64). Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
+    humanshape the left-out mesh is not re-aligned. PCA uses the training set's Gram matrix,
+    sliced from the Gram matrix of all meshes (computed once), so each left-out mesh costs
+    `O(T^3 + N D M)` (use float64 for large sets). Memory per left-out mesh is `O(T^2 + D M)`.
+    Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
 
     **Arguments:**
 
