@@ -1,13 +1,14 @@
 """Differentiable geometry kernels on one triangle mesh.
 
-Every function takes the vertices of **one** mesh, shape `(V, 3)` in metres in the world frame; batch
-with `jax.vmap`. Connectivity comes either as a raw `(F, 3)` face array or as a
+Every function takes the vertices of **one** mesh, shape `(V, 3)` in metres in the world frame;
+batch with `jax.vmap`. Connectivity comes either as a raw `(F, 3)` face array or as a
 [`bodyprior.Topology`][] (for edge-based quantities). Nothing is jitted here.
 
 Values *and* gradients are NaN-free at degenerate configurations (zero-area faces, coincident
-vertices, flat hinges, queries lying exactly on the surface). Square roots, divisions and `atan2` use
-the "double where" trick: the unsafe argument is replaced by a harmless constant inside `jnp.where`
-before the operation, and the result is selected afterwards, so reverse-mode AD never meets `0 / 0`.
+vertices, flat hinges, queries lying exactly on the surface). Square roots, divisions and `atan2`
+use the "double where" trick: the unsafe argument is replaced by a harmless constant inside
+`jnp.where` before the operation, and the result is selected afterwards, so reverse-mode AD never
+meets `0 / 0`.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from ._topology import Topology
 from ._validate import check_array, check_range, is_tracer
@@ -45,9 +46,9 @@ __all__ = [
 _MIN_SIN = 1e-6
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Input handling and NaN-safe primitives
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _as_float(x) -> Array:
@@ -83,7 +84,7 @@ def _eps(dtype) -> Array:
     return jnp.asarray(np.sqrt(np.finfo(dtype).tiny), dtype=dtype)
 
 
-def _safe_norm(x: Float[Array, "... 3"]) -> Float[Array, "..."]:
+def _safe_norm(x: Float[Array, "... 3"]) -> Float[Array, " ..."]:
     """Euclidean norm over the last axis with value and gradient 0 at the zero vector."""
     sq = jnp.sum(x * x, axis=-1)
     ok = sq > _eps(x.dtype)
@@ -108,12 +109,14 @@ def _face_cross(vertices: Float[Array, "V 3"], faces: Int[Array, "F 3"]) -> Floa
     return jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Per-face / per-vertex quantities
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
-def face_normals(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Float[Array, "F 3"]:
+def face_normals(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[Array, "F 3"]:
     """Unit outward normals of the faces.
 
     The normal of face `(a, b, c)` is `normalize((x_b - x_a) × (x_c - x_a))`, i.e. counter-clockwise
@@ -124,15 +127,17 @@ def face_normals(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
     - `vertices`: `(V, 3)` vertex positions of one mesh.
     - `faces`: `(F, 3)` integer vertex indices.
 
-    **Returns:** `(F, 3)` unit normals (dimensionless). Zero-area faces get the zero vector, with finite
-    gradients.
+    **Returns:** `(F, 3)` unit normals (dimensionless). Zero-area faces get the zero vector, with
+    finite gradients.
     """
     vertices = _check_vertices(vertices)
     faces = _check_faces(faces, vertices.shape[0])
     return _safe_normalize(_face_cross(vertices, faces))
 
 
-def face_areas(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Float[Array, " F"]:
+def face_areas(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[Array, " F"]:
     """Areas of the faces.
 
     **Arguments:**
@@ -140,15 +145,17 @@ def face_areas(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) 
     - `vertices`: `(V, 3)` vertex positions of one mesh (metres).
     - `faces`: `(F, 3)` integer vertex indices.
 
-    **Returns:** `(F,)` areas in square metres (`½ |(x_b - x_a) × (x_c - x_a)|`); the gradient is finite
-    (zero) at zero area.
+    **Returns:** `(F,)` areas in square metres (`½ |(x_b - x_a) × (x_c - x_a)|`); the gradient is
+    finite (zero) at zero area.
     """
     vertices = _check_vertices(vertices)
     faces = _check_faces(faces, vertices.shape[0])
     return 0.5 * _safe_norm(_face_cross(vertices, faces))
 
 
-def vertex_normals(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Float[Array, "V 3"]:
+def vertex_normals(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[Array, "V 3"]:
     """Area-weighted unit vertex normals.
 
     The normal of vertex `v` is `normalize(Σ_f A_f n_f)` over the faces `f` incident to `v`, with
@@ -171,7 +178,9 @@ def vertex_normals(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3
     return _safe_normalize(acc)
 
 
-def vertex_areas(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]) -> Float[Array, " V"]:
+def vertex_areas(
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
+) -> Float[Array, " V"]:
     """Barycentric (lumped) vertex areas: one third of the area of every incident face.
 
     This is the diagonal of the lumped mass matrix; it sums to the total surface area.
@@ -192,9 +201,9 @@ def vertex_areas(vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"]
     return acc
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Edge quantities
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def edge_lengths(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Float[Array, " E"]:
@@ -215,34 +224,34 @@ def edge_lengths(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Float
 def dihedral_angles(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Float[Array, " E"]:
     """Signed dihedral angles of the edges (the bending angle of each hinge).
 
-    For interior edge `e = (i, j)` with faces `s` (holding the directed edge `i -> j`) and `t` (holding
-    `j -> i`) and opposite vertices `k ∈ s`, `l ∈ t` (see [`bodyprior.Topology`][]):
+    For interior edge `e = (i, j)` with faces `s` (holding the directed edge `i -> j`) and `t`
+    (holding `j -> i`) and opposite vertices `k ∈ s`, `l ∈ t` (see [`bodyprior.Topology`][]):
 
     - `n_s = normalize((x_j - x_i) × (x_k - x_i))`, `n_t = normalize((x_i - x_j) × (x_l - x_j))` are
       the outward unit normals, `d = normalize(x_j - x_i)` the edge direction as oriented in `s`;
     - `θ_e = atan2((n_s × n_t) · d, n_s · n_t) ∈ (-π, π]`, the angle that rotates `n_s` into `n_t`
       about `d`.
 
-    So `θ = 0` for a flat hinge, `θ > 0` for a **convex** fold (a closed convex surface has all angles
-    positive) and `θ < 0` for a concave one; `|θ|` is the angle between the two face normals, i.e.
-    `π` minus the interior (solid-side) dihedral angle. The value does not depend on which face is
-    called `s`. This is the convention of PanoMan / discrete shells (scikit-shapes, GOAST).
+    So `θ = 0` for a flat hinge, `θ > 0` for a **convex** fold (a closed convex surface has all
+    angles positive) and `θ < 0` for a concave one; `|θ|` is the angle between the two face normals,
+    i.e. `π` minus the interior (solid-side) dihedral angle. The value does not depend on which face
+    is called `s`. This is the convention of PanoMan / discrete shells (scikit-shapes, GOAST).
 
     **Arguments:**
 
     - `vertices`: `(V, 3)` vertex positions of one mesh, `V = topology.n_vertices`.
     - `topology`: the mesh's [`bodyprior.Topology`][].
 
-    **Returns:** `(E,)` angles in radians. Boundary edges, and hinges with a zero-area face, get `0`;
-    value and gradient are NaN-free there and at flat hinges.
+    **Returns:** `(E,)` angles in radians. Boundary edges, and hinges with a zero-area face, get
+    `0`; value and gradient are NaN-free there and at flat hinges.
     """
     vertices = _check_topology(topology, vertices)
     e, opp = topology.edges, topology.edge_opposite
     i, j = e[:, 0], e[:, 1]
     k = opp[:, 0]
     # Boundary edges have l = -1: substitute i, which gives a zero normal (and is masked anyway).
-    l = jnp.where(topology.interior, opp[:, 1], i)
-    xi, xj, xk, xl = vertices[i], vertices[j], vertices[k], vertices[l]
+    m = jnp.where(topology.interior, opp[:, 1], i)
+    xi, xj, xk, xl = vertices[i], vertices[j], vertices[k], vertices[m]
     d = _safe_normalize(xj - xi)
     n_s = _safe_normalize(jnp.cross(xj - xi, xk - xi))
     n_t = _safe_normalize(jnp.cross(xi - xj, xl - xj))
@@ -257,10 +266,10 @@ def dihedral_angles(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Fl
 def cotangent_weights(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Float[Array, " E"]:
     """Cotangent Laplacian edge weights `w_ij = ½ (cot α_ij + cot β_ij)`.
 
-    `α_ij`, `β_ij` are the angles opposite edge `(i, j)` in its two faces; boundary edges get only the
-    one term `½ cot α_ij`. Weights are negative across obtuse angles. For (near-)degenerate triangles
-    the cotangent is bounded: it is computed as `cos / max(sin, 1e-6)`, so `|cot| ≲ 1e6`, and value and
-    gradient stay finite even for coincident vertices.
+    `α_ij`, `β_ij` are the angles opposite edge `(i, j)` in its two faces; boundary edges get only
+    the one term `½ cot α_ij`. Weights are negative across obtuse angles. For (near-)degenerate
+    triangles the cotangent is bounded: it is computed as `cos / max(sin, 1e-6)`, so `|cot| ≲ 1e6`,
+    and value and gradient stay finite even for coincident vertices.
 
     **Arguments:**
 
@@ -308,13 +317,15 @@ def _check_weights(weights, topology: Topology) -> Array:
 
 
 def laplacian_apply(
-    x: Float[ArrayLike, "V *d"], topology: Topology, weights: Float[ArrayLike, " E"]
-) -> Float[Array, "V *d"]:
+    x: Float[ArrayLike, " V *d"], topology: Topology, weights: Float[ArrayLike, " E"]
+) -> Float[Array, " V *d"]:
     """Applies the edge-weighted graph Laplacian: `(L x)_i = Σ_{j ∈ N(i)} w_ij (x_j - x_i)`.
 
-    With this sign `L` is negative semi-definite for non-negative weights (`xᵀ L x ≤ 0`), and `L x = 0`
-    for constant `x`; with cotangent weights `L x` is `2 ×` the integrated Laplace-Beltrami operator
-    (not divided by vertex areas), and vanishes at interior vertices of a flat patch for `x` linear.
+    With this sign `L` is negative semi-definite for non-negative weights (`xᵀ L x ≤ 0`) and
+    `L x = 0` for constant `x`. With [`bodyprior.cotangent_weights`][] `(L x)_i` is the integrated
+    (area-weighted) Laplace-Beltrami operator at vertex `i`; divide by
+    [`bodyprior.vertex_areas`][] for pointwise values. It vanishes at interior vertices of a flat
+    patch for `x` linear.
 
     **Arguments:**
 
@@ -330,8 +341,8 @@ def laplacian_apply(
         x = np.asarray(x)
     if x.ndim not in (1, 2) or x.shape[0] != topology.n_vertices:
         raise ValueError(
-            f"`x` must have shape ({topology.n_vertices},) or ({topology.n_vertices}, d), got shape "
-            f"{tuple(x.shape)}."
+            f"`x` must have shape ({topology.n_vertices},) or ({topology.n_vertices}, d), "
+            f"got shape {tuple(x.shape)}."
         )
     check_array(x, "x", (topology.n_vertices,) + (None,) * (x.ndim - 1))
     x = _as_float(x)
@@ -339,14 +350,17 @@ def laplacian_apply(
     w = weights.reshape((-1,) + (1,) * (x.ndim - 1))
     flux = w * (x[j] - x[i])
     seg = jnp.concatenate([i, j])
-    return jax.ops.segment_sum(jnp.concatenate([flux, -flux]), seg, num_segments=topology.n_vertices)
+    return jax.ops.segment_sum(
+        jnp.concatenate([flux, -flux]), seg, num_segments=topology.n_vertices
+    )
 
 
 def laplacian_matrix(topology: Topology, weights: Float[ArrayLike, " E"]) -> Float[Array, "V V"]:
     """Dense Laplacian matrix `L` with `L @ x == laplacian_apply(x, topology, weights)`.
 
-    `L_ij = L_ji = w_ij` for each edge, `L_ii = -Σ_j w_ij`. Differentiable in `weights`; `O(V²)` memory,
-    so meant for small meshes and tests (see [`bodyprior.laplacian_sparse`][] for large ones).
+    `L_ij = L_ji = w_ij` for each edge, `L_ii = -Σ_j w_ij`. Differentiable in `weights`; `O(V²)`
+    memory, so meant for small meshes and tests (see [`bodyprior.laplacian_sparse`][] for large
+    ones).
 
     **Arguments:**
 
@@ -371,12 +385,15 @@ def laplacian_sparse(topology: Topology, weights: Float[ArrayLike, " E"]):
     - `topology`: the mesh's [`bodyprior.Topology`][].
     - `weights`: `(E,)` concrete edge weights (not a tracer).
 
-    **Returns:** a `(V, V)` `scipy.sparse.csr_matrix` (float64) with `L_ij = w_ij`, `L_ii = -Σ_j w_ij`.
+    **Returns:** a `(V, V)` `scipy.sparse.csr_matrix` (float64) with `L_ij = w_ij`, `L_ii = -Σ_j
+    w_ij`.
     """
     import scipy.sparse as sp
 
     if is_tracer(weights):
-        raise ValueError("`weights` must be concrete for laplacian_sparse (host-side), got a tracer.")
+        raise ValueError(
+            "`weights` must be concrete for laplacian_sparse (host-side), got a tracer."
+        )
     w = np.asarray(_check_weights(weights, topology), dtype=np.float64)
     e = np.asarray(topology.edges)
     n = topology.n_vertices
@@ -389,9 +406,9 @@ def laplacian_sparse(topology: Topology, weights: Float[ArrayLike, " E"]):
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Sampling
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def barycentric_points(
@@ -400,7 +417,9 @@ def barycentric_points(
     face_idx: Int[ArrayLike, " N"],
     bary: Float[ArrayLike, "N 3"],
 ) -> Float[Array, "N 3"]:
-    """Points given by face indices and barycentric coordinates: `Σ_c bary[n, c] x_{faces[face_idx[n], c]}`.
+    """Points given by face indices and barycentric coordinates.
+
+    Point `n` is `Σ_c bary[n, c] x_{faces[face_idx[n], c]}`.
 
     **Arguments:**
 
@@ -426,8 +445,8 @@ def sample_surface(
 ) -> tuple[Float[Array, "n 3"], Int[Array, " n"], Float[Array, "n 3"]]:
     """Samples `n` points uniformly (area-weighted) on the surface.
 
-    Faces are drawn with probability proportional to their area, then a uniform point in the triangle
-    (square-root-free reflection of a uniform point in the unit square). The points are a
+    Faces are drawn with probability proportional to their area, then a uniform point in the
+    triangle (square-root-free reflection of a uniform point in the unit square). The points are a
     reparameterised, differentiable function of `vertices` (for fixed `key`).
 
     **Arguments:**
@@ -447,7 +466,9 @@ def sample_surface(
     n = int(n)
     areas = jax.lax.stop_gradient(0.5 * _safe_norm(_face_cross(vertices, faces)))
     kf, kb = jax.random.split(key)
-    face_idx = jax.random.choice(kf, faces.shape[0], (n,), p=areas / jnp.sum(areas)).astype(jnp.int32)
+    face_idx = jax.random.choice(kf, faces.shape[0], (n,), p=areas / jnp.sum(areas)).astype(
+        jnp.int32
+    )
     uv = jax.random.uniform(kb, (n, 2), dtype=vertices.dtype)
     flip = jnp.sum(uv, axis=-1, keepdims=True) > 1.0
     uv = jnp.where(flip, 1.0 - uv, uv)
@@ -456,13 +477,17 @@ def sample_surface(
     return jnp.einsum("nc,ncd->nd", bary, tri), face_idx, bary
 
 
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 # Nearest neighbours and closest points (brute force, chunked)
-# ----------------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------------------------
 
 
 def _check_chunk(chunk_size) -> int:
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
         raise ValueError(f"`chunk_size` must be a positive Python int, got {chunk_size!r}.")
     return int(chunk_size)
 
@@ -472,10 +497,10 @@ def nearest_neighbors(
 ) -> tuple[Int[Array, " Q"], Float[Array, " Q"]]:
     """Nearest point of `points` for every query (exact brute force).
 
-    Cost `O(Q · P)` time; memory `O(chunk_size · P)`: the queries are processed `chunk_size` at a time
-    with `jax.lax.map(..., batch_size=chunk_size)`. The search itself is not differentiated; the
-    returned squared distances are recomputed from the chosen pairs, so they are differentiable in
-    `queries` and `points`. Jittable (all shapes static).
+    Cost `O(Q · P)` time; memory `O(chunk_size · P)`: the queries are processed `chunk_size` at a
+    time with `jax.lax.map(..., batch_size=chunk_size)`. The search itself is not differentiated;
+    the returned squared distances are recomputed from the chosen pairs, so they are differentiable
+    in `queries` and `points`. Jittable (all shapes static).
 
     **Arguments:**
 
@@ -483,8 +508,8 @@ def nearest_neighbors(
     - `points`: `(P, 3)` candidate points, `P >= 1`.
     - `chunk_size`: number of queries per block (static).
 
-    **Returns:** `(indices, sq_distances)`: `(Q,)` int32 index of the nearest point (the lowest index
-    on ties) and `(Q,)` squared Euclidean distances.
+    **Returns:** `(indices, sq_distances)`: `(Q,)` int32 index of the nearest point (the lowest
+    index on ties) and `(Q,)` squared Euclidean distances.
     """
     queries = _check_vertices(queries, "queries")
     points = _check_vertices(points, "points")
@@ -503,9 +528,9 @@ def _closest_bary(p: Float[Array, "*b 3"], a, b, c) -> Float[Array, "*b 3"]:
     """Barycentric coordinates of the point of triangle `abc` closest to `p` (branch-free).
 
     Ericson, *Real-Time Collision Detection* (2005), §5.1.5 `ClosestPtPointTriangle`: Voronoi-region
-    tests for the three vertices, three edges and the interior, evaluated for all regions and selected
-    with `jnp.where` (earlier regions take precedence, as in the branching original). All divisions
-    are guarded, so gradients stay finite for degenerate triangles.
+    tests for the three vertices, three edges and the interior, evaluated for all regions and
+    selected with `jnp.where` (earlier regions take precedence, as in the branching original). All
+    divisions are guarded, so gradients stay finite for degenerate triangles.
     """
     ab, ac = b - a, c - a
     dot = lambda u, v: jnp.sum(u * v, axis=-1)
@@ -542,12 +567,14 @@ def _closest_bary(p: Float[Array, "*b 3"], a, b, c) -> Float[Array, "*b 3"]:
 
 # The two searches below are the only jitted code in this module. They are integer-valued and never
 # differentiated (their inputs are stop-gradient'ed), and `lax.map` called eagerly re-traces and
-# re-compiles its body on every call; a module-level `jit` with a static `chunk_size` compiles once per
-# shape. Inside a user's `jit` they are simply inlined.
+# re-compiles its body on every call; a module-level `jit` with a static `chunk_size` compiles once
+# per shape. Inside a user's `jit` they are simply inlined.
 
 
 @functools.partial(jax.jit, static_argnums=2)
-def _nn_search(queries: Float[Array, "Q 3"], points: Float[Array, "P 3"], chunk_size: int) -> Int[Array, " Q"]:
+def _nn_search(
+    queries: Float[Array, "Q 3"], points: Float[Array, "P 3"], chunk_size: int
+) -> Int[Array, " Q"]:
     def one(q):
         return jnp.argmin(jnp.sum((points - q) ** 2, axis=-1)).astype(jnp.int32)
 
@@ -555,7 +582,9 @@ def _nn_search(queries: Float[Array, "Q 3"], points: Float[Array, "P 3"], chunk_
 
 
 @functools.partial(jax.jit, static_argnums=2)
-def _face_search(queries: Float[Array, "Q 3"], tri: Float[Array, "F 3 3"], chunk_size: int) -> Int[Array, " Q"]:
+def _face_search(
+    queries: Float[Array, "Q 3"], tri: Float[Array, "F 3 3"], chunk_size: int
+) -> Int[Array, " Q"]:
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
 
     def one(q):
@@ -576,11 +605,11 @@ def closest_points_on_mesh(
     """Closest point on a triangle mesh for every query (exact brute force over all faces).
 
     For each query the exact closest point on every triangle is computed (Ericson's branch-free
-    Voronoi-region routine) and the nearest one is kept. Cost `O(Q · F)` time; memory
-    `O(chunk_size · F)`: queries are processed `chunk_size` at a time with
-    `jax.lax.map(..., batch_size=chunk_size)`. The search is not differentiated; the outputs are then
-    recomputed for the chosen faces, so points, barycentrics and distances are differentiable in
-    `queries` and `vertices` (for a fixed face assignment). Jittable (all shapes static).
+    Voronoi-region routine) and the nearest one is kept. Cost `O(Q · F)` time; memory `O(chunk_size
+    · F)`: queries are processed `chunk_size` at a time with `jax.lax.map(...,
+    batch_size=chunk_size)`. The search is not differentiated; the outputs are then recomputed for
+    the chosen faces, so points, barycentrics and distances are differentiable in `queries` and
+    `vertices` (for a fixed face assignment). Jittable (all shapes static).
 
     **Arguments:**
 
@@ -591,8 +620,8 @@ def closest_points_on_mesh(
 
     **Returns:** `(points, face_idx, bary, distances)`: `(Q, 3)` closest points on the surface,
     `(Q,)` int32 index of the face they lie on (the lowest index on ties), `(Q, 3)` barycentric
-    coordinates in that face, and `(Q,)` unsigned Euclidean distances (gradient 0 for a query exactly
-    on the surface).
+    coordinates in that face, and `(Q,)` unsigned Euclidean distances (gradient 0 for a query
+    exactly on the surface).
     """
     queries = _check_vertices(queries, "queries")
     vertices = _check_vertices(vertices)

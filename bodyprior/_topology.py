@@ -2,9 +2,9 @@
 
 Everything here is integer bookkeeping computed in NumPy from the face list: the unique undirected
 edges, the two faces on either side of each edge and the vertices opposite it (the "hinge" or
-"diamond" `i, j, k, l` used by dihedral angles and cotangent weights), the face -> edge map and padded
-one-ring neighbour tables. The result is an `eqx.Module` whose arrays are leaves and whose counts are
-static, so geometry kernels can gather with it under `jit`/`vmap`/`grad`.
+"diamond" `i, j, k, l` used by dihedral angles and cotangent weights), the face -> edge map and
+padded one-ring neighbour tables. The result is an `eqx.Module` whose arrays are leaves and whose
+counts are static, so geometry kernels can gather with it under `jit`/`vmap`/`grad`.
 """
 
 from __future__ import annotations
@@ -25,18 +25,20 @@ class Topology(eqx.Module):
     Build it with [`bodyprior.Topology.from_faces`][], which validates the mesh (2-manifold edges,
     consistent orientation, indices in range) on the host. All index arrays are `int32`.
 
-    **Edge conventions.** `edges[e] = (i, j)` with `i < j`. For an interior edge, `edge_faces[e, 0]` is
-    the face `s` in which the directed edge `i -> j` appears in its counter-clockwise corner order and
-    `edge_faces[e, 1]` is the face `t` holding `j -> i`; `edge_opposite[e] = (k, l)` are the vertices of
-    `s` and `t` opposite the edge. With outward (CCW) orientation this makes `(x_j - x_i)` the edge
-    direction "as oriented in `s`", which fixes the sign of [`bodyprior.dihedral_angles`][]. For a
-    boundary edge the single adjacent face is always stored in slot 0 (whichever direction it holds the
-    edge in) and slot 1 of `edge_faces`/`edge_opposite` is `-1`.
+    **Edge conventions.** `edges[e] = (i, j)` with `i < j`. For an interior edge, `edge_faces[e, 0]`
+    is the face `s` in which the directed edge `i -> j` appears in its counter-clockwise corner
+    order and `edge_faces[e, 1]` is the face `t` holding `j -> i`; `edge_opposite[e] = (k, l)` are
+    the vertices of `s` and `t` opposite the edge. With outward (CCW) orientation this makes `(x_j -
+    x_i)` the edge direction "as oriented in `s`", which fixes the sign of
+    [`bodyprior.dihedral_angles`][]. For a boundary edge the single adjacent face is always stored
+    in slot 0 (whichever direction it holds the edge in) and slot 1 of `edge_faces`/`edge_opposite`
+    is `-1`.
 
     **Fields:**
 
     - `faces`: `(F, 3)` vertex indices, counter-clockwise seen from outside.
-    - `edges`: `(E, 2)` unique undirected edges, `edges[:, 0] < edges[:, 1]`, sorted lexicographically.
+    - `edges`: `(E, 2)` unique undirected edges, `edges[:, 0] < edges[:, 1]`, sorted
+      lexicographically.
     - `edge_faces`: `(E, 2)` adjacent faces (see above), `-1` where missing.
     - `edge_opposite`: `(E, 2)` opposite vertices (see above), `-1` where missing.
     - `interior`: `(E,)` bool, `True` for edges with two adjacent faces.
@@ -83,18 +85,20 @@ class Topology(eqx.Module):
 
         **Arguments:**
 
-        - `faces`: `(F, 3)` integer array of vertex indices, counter-clockwise seen from outside. Must be
-          concrete (not a tracer): topology is static.
-        - `n_vertices`: number of vertices `V`; defaults to `faces.max() + 1`. Vertices not referenced
-          by any face are allowed (valence 0).
-        - `allow_boundary`: if `False`, reject meshes with boundary edges (require a closed surface).
+        - `faces`: `(F, 3)` integer array of vertex indices, counter-clockwise seen from outside.
+          Must be concrete (not a tracer): topology is static.
+        - `n_vertices`: number of vertices `V`; defaults to `faces.max() + 1`. Vertices not
+          referenced by any face are allowed (valence 0).
+        - `allow_boundary`: if `False`, reject meshes with boundary edges (require a closed
+          surface).
 
         **Returns:** a [`bodyprior.Topology`][].
 
-        **Raises:** `ValueError` (naming `faces` or `n_vertices`) if `faces` is not an `(F, 3)` integer
-        array with `F >= 1`, an index lies outside `[0, n_vertices)`, a face repeats a vertex, an edge
-        is shared by more than two faces (non-manifold), two faces traverse a shared edge in the same
-        direction (inconsistent orientation), or the mesh has a boundary while `allow_boundary=False`.
+        **Raises:** `ValueError` (naming `faces` or `n_vertices`) if `faces` is not an `(F, 3)`
+        integer array with `F >= 1`, an index lies outside `[0, n_vertices)`, a face repeats a
+        vertex, an edge is shared by more than two faces (non-manifold), two faces traverse a shared
+        edge in the same direction (inconsistent orientation), or the mesh has a boundary while
+        `allow_boundary=False`.
         """
         if is_tracer(faces):
             raise ValueError("`faces` must be a concrete array (topology is static), got a tracer.")
@@ -113,18 +117,21 @@ class Topology(eqx.Module):
         if fmin < 0 or fmax >= n_vertices:
             bad = int(np.argmax(np.any((faces < 0) | (faces >= n_vertices), axis=1)))
             raise ValueError(
-                f"`faces` indices must lie in [0, {n_vertices}) (n_vertices={n_vertices}), got values "
-                f"in [{fmin}, {fmax}]; first offending face {bad}: {faces[bad].tolist()}."
+                f"`faces` indices must lie in [0, {n_vertices}) (n_vertices={n_vertices}), "
+                f"got values in [{fmin}, {fmax}]; first offending face {bad}: "
+                f"{faces[bad].tolist()}."
             )
         faces = faces.astype(np.int64)
         degenerate = (
-            (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+            (faces[:, 0] == faces[:, 1])
+            | (faces[:, 1] == faces[:, 2])
+            | (faces[:, 2] == faces[:, 0])
         )
         if degenerate.any():
             bad = int(np.argmax(degenerate))
             raise ValueError(
-                f"`faces` has {int(degenerate.sum())} degenerate face(s) with a repeated vertex index; "
-                f"first is face {bad}: {faces[bad].tolist()}."
+                f"`faces` has {int(degenerate.sum())} degenerate face(s) with a repeated vertex "
+                f"index; first is face {bad}: {faces[bad].tolist()}."
             )
 
         # Half-edge h = 3 f + c goes from corner c to corner c + 1 of face f; its opposite vertex is
@@ -156,8 +163,9 @@ class Topology(eqx.Module):
             i, j = (edges[e, 0], edges[e, 1]) if n_forward[e] == 2 else (edges[e, 1], edges[e, 0])
             raise ValueError(
                 f"`faces` is not consistently oriented: faces {fs} both traverse edge "
-                f"({edges[e, 0]}, {edges[e, 1]}) in the direction {i} -> {j}; adjacent faces must use a "
-                f"shared edge in opposite directions ({int(inconsistent.sum())} such edge(s))."
+                f"({edges[e, 0]}, {edges[e, 1]}) in the direction {i} -> {j}; adjacent faces must "
+                f"use a shared edge in opposite directions ({int(inconsistent.sum())} such "
+                f"edge(s))."
             )
         interior = counts == 2
         if not allow_boundary and not interior.all():

@@ -71,9 +71,7 @@ def test_face_quantities_match_trimesh(seed, scale):
     np.testing.assert_allclose(G.vertex_normals(v, ICO.faces), ref, atol=1e-10)
     lookup = edge_lookup(ICO_TOPO)
     e = lookup(mesh.edges_unique)
-    np.testing.assert_allclose(
-        G.edge_lengths(v, ICO_TOPO)[e], mesh.edges_unique_length, rtol=1e-12
-    )
+    np.testing.assert_allclose(G.edge_lengths(v, ICO_TOPO)[e], mesh.edges_unique_length, rtol=1e-12)
 
 
 @settings(deadline=None, max_examples=20)
@@ -144,7 +142,8 @@ def test_dihedral_invariant_to_labelling():
 
 
 def _scalar_losses(faces, topo):
-    # (closest_points_on_mesh gradients at degenerate triangles are checked in the closest-point tests)
+    # (closest_points_on_mesh gradients at degenerate triangles are checked in the closest-point
+    # tests)
     return {
         "dihedral": lambda x: jnp.sum(G.dihedral_angles(x, topo) ** 2 + G.dihedral_angles(x, topo)),
         "normals": lambda x: jnp.sum(G.face_normals(x, faces) * jnp.array([1.0, 2.0, 3.0])),
@@ -217,7 +216,9 @@ def test_cotangent_weights_reference():
     v = deformed_ico(11, 0.1)
     w = np.asarray(G.cotangent_weights(v, ICO_TOPO))
     ref = np.zeros(ICO_TOPO.n_edges)
-    for e, ((i, j), ks) in enumerate(zip(np.asarray(ICO_TOPO.edges), np.asarray(ICO_TOPO.edge_opposite))):
+    for e, ((i, j), ks) in enumerate(
+        zip(np.asarray(ICO_TOPO.edges), np.asarray(ICO_TOPO.edge_opposite))
+    ):
         for k in ks:
             a, b = v[i] - v[k], v[j] - v[k]
             ang = np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b))
@@ -274,7 +275,9 @@ def test_sample_surface(getkey):
     # Uniform within a triangle: mean of the barycentrics is the centroid (1/3 each).
     np.testing.assert_allclose(jnp.mean(bary, axis=0), 1 / 3, atol=0.02)
     # Differentiable in the vertices.
-    g = jax.grad(lambda x: jnp.sum(G.sample_surface(jr.PRNGKey(1), x, faces, 10)[0]))(jnp.asarray(v))
+    g = jax.grad(lambda x: jnp.sum(G.sample_surface(jr.PRNGKey(1), x, faces, 10)[0]))(
+        jnp.asarray(v)
+    )
     assert all_finite(g) and float(jnp.max(jnp.abs(g))) > 0
 
 

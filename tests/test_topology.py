@@ -96,7 +96,9 @@ def test_is_pytree_with_static_counts():
 
 def test_error_non_manifold():
     faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
-    with pytest.raises(ValueError, match=r"`faces` is not 2-manifold: edge \(0, 1\) is shared by 3"):
+    with pytest.raises(
+        ValueError, match=r"`faces` is not 2-manifold: edge \(0, 1\) is shared by 3"
+    ):
         Topology.from_faces(faces)
 
 
