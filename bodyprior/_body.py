@@ -182,10 +182,16 @@ def _dense_sparse(ptr, idx, val, n_vertices) -> np.ndarray:
     return out.reshape(T, -1)
 
 
+def _normalized(w) -> np.ndarray:
+    w = w.astype(np.float64)
+    return w / w.sum(1, keepdims=True)
+
+
 def _densify(index, weight, n_joints) -> np.ndarray:
     W = np.zeros((index.shape[0], n_joints))
     np.add.at(W, (np.arange(index.shape[0])[:, None], index.astype(np.int64)), weight)
-    return W
+    # Stored weights are float32; renormalise in float64 so rows sum to 1 at the model's precision.
+    return W / W.sum(1, keepdims=True)
 
 
 @functools.lru_cache(maxsize=8)
@@ -232,7 +238,7 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         tail_template=jnp.asarray(a["template_points"][tail], dt),
         roll=jnp.asarray(a[f"rig_{rig}_roll"], dt),
         skin_index=jnp.asarray(a[f"rig_{rig}_skin_index"], jnp.int32),
-        skin_weight=jnp.asarray(a[f"rig_{rig}_skin_weight"], dt),
+        skin_weight=jnp.asarray(_normalized(a[f"rig_{rig}_skin_weight"]), dt),
         skin_dense=jnp.asarray(_densify(a[f"rig_{rig}_skin_index"], a[f"rig_{rig}_skin_weight"],
                                         len(a[f"rig_{rig}_labels"])), dt),
         regressor_index=jnp.asarray(a[f"rig_{rig}_regressor_index"], jnp.int32),
