@@ -22,7 +22,7 @@ from jaxtyping import Array, Float, Int
 
 from ._kinematics import forward_kinematics
 from ._rotations import rotation_shape, rotation_to_matrix
-from ._skinning import dqs
+from ._skinning import dqs, lbs
 from ._validate import check_array, check_range, is_tracer
 from .assets import load_asset
 
@@ -112,7 +112,6 @@ class Rig(eqx.Module):
     roll: Float[Array, " J"]
     skin_index: Int[Array, "V K"]
     skin_weight: Float[Array, "V K"]
-    skin_dense: Float[Array, "V J"]
     regressor_index: Int[Array, "J M"]
     regressor_weight: Float[Array, "J M"]
 
@@ -187,13 +186,6 @@ def _normalized(w) -> np.ndarray:
     return w / w.sum(1, keepdims=True)
 
 
-def _densify(index, weight, n_joints) -> np.ndarray:
-    W = np.zeros((index.shape[0], n_joints))
-    np.add.at(W, (np.arange(index.shape[0])[:, None], index.astype(np.int64)), weight)
-    # Stored weights are float32; renormalise in float64 so rows sum to 1 at the model's precision.
-    return W / W.sum(1, keepdims=True)
-
-
 @functools.lru_cache(maxsize=8)
 def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facial_actions: bool, dtype: str):
     a = load_asset()
@@ -239,8 +231,6 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         roll=jnp.asarray(a[f"rig_{rig}_roll"], dt),
         skin_index=jnp.asarray(a[f"rig_{rig}_skin_index"], jnp.int32),
         skin_weight=jnp.asarray(_normalized(a[f"rig_{rig}_skin_weight"]), dt),
-        skin_dense=jnp.asarray(_densify(a[f"rig_{rig}_skin_index"], a[f"rig_{rig}_skin_weight"],
-                                        len(a[f"rig_{rig}_labels"])), dt),
         regressor_index=jnp.asarray(a[f"rig_{rig}_regressor_index"], jnp.int32),
         regressor_weight=jnp.asarray(a[f"rig_{rig}_regressor_weight"], dt),
     )
@@ -409,12 +399,8 @@ def evaluate(
         check_array(root_translation, "root_translation", (3,))
         t = jnp.asarray(root_translation, verts.dtype)
     A, posed_joints = forward_kinematics(body.parents, R, joints, t)
-    if skinning == "dqs":
-        return dqs(verts, body.rig.skin_index, body.rig.skin_weight, A), posed_joints
-    # LBS with the (V, J) weight matrix: one GEMM, which batches far better under vmap than the per-vertex
-    # gather of the top-k kernel `bodyprior.lbs` (same result; ~6x faster at batch 256 on CPU).
-    M = (body.rig.skin_dense @ A[:, :3, :].reshape(J, 12)).reshape(-1, 3, 4)
-    return jnp.einsum("vab,vb->va", M[:, :, :3], verts) + M[:, :, 3], posed_joints
+    skin = lbs if skinning == "lbs" else dqs
+    return skin(verts, body.rig.skin_index, body.rig.skin_weight, A), posed_joints
 
 
 def landmarks(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "N 3"]:
