@@ -418,3 +418,21 @@ def regress_joints(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Ar
     if not is_tracer(vertices):
         check_array(vertices, "vertices", (body.n_vertices, 3))
     return jnp.einsum("jm,jmc->jc", body.rig.regressor_weight, vertices[body.rig.regressor_index])
+
+
+def sscape_rig(body: DefaultBody) -> dict:
+    """The default body's rig as keyword arguments of [`bodyprior.sscape.learn`][]: bone tree, joint names,
+    the vertex joint regressor (joints as a fixed linear function of the surface, as S-SCAPE requires) and the
+    top-k skin weights.
+
+    **Example:** `bodyprior.sscape.learn(pop.vertices, body.faces, n_components=20, **sscape_rig(body))`.
+    """
+    r = body.rig
+    return dict(
+        parents=r.parents,
+        joint_names=r.bone_names,
+        joint_regressor_indices=r.regressor_index,
+        joint_regressor_weights=r.regressor_weight,
+        skin_indices=r.skin_index,
+        skin_weights=r.skin_weight,
+    )
