@@ -59,7 +59,13 @@ def _validate_parents_cached(parents: tuple) -> tuple[int, ...]:
             raise ValueError(f"`parents[{j}]` must lie in [0, {J - 1}], got {p}.")
         if p == j:
             raise ValueError(f"`parents[{j}]` is {j}: a joint cannot be its own parent.")
-    # Every joint must reach the root; walking more than J steps means a cycle.
+    _depths(out)  # every joint must reach the root
+    return tuple(out)
+
+
+def _depths(parents: Sequence[int]) -> list[int]:
+    """Depth of every joint (root 0); raises on a cycle (a walk longer than J steps)."""
+    J = len(parents)
     depth = [-1] * J
     depth[0] = 0
     for j in range(J):
@@ -67,14 +73,14 @@ def _validate_parents_cached(parents: tuple) -> tuple[int, ...]:
         k = j
         while depth[k] < 0:
             path.append(k)
-            k = out[k]
+            k = parents[k]
             if len(path) > J:
                 raise ValueError(f"`parents` contains a cycle through joint {j}.")
         d = depth[k]
         for k in reversed(path):
             d += 1
             depth[k] = d
-    return tuple(out)
+    return depth
 
 
 def validate_parents(parents: Sequence[int]) -> tuple[int, ...]:
@@ -105,20 +111,7 @@ def validate_parents(parents: Sequence[int]) -> tuple[int, ...]:
 
 @functools.lru_cache(maxsize=256)
 def _levels_cached(parents: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    J = len(parents)
-    depth = [-1] * J
-    depth[0] = 0
-    for j in range(J):
-        path = []
-        k = j
-        while depth[k] < 0:
-            path.append(k)
-            k = parents[k]
-        d = depth[k]
-        for k in reversed(path):
-            d += 1
-            depth[k] = d
-    depth_arr = np.asarray(depth)
+    depth_arr = np.asarray(_depths(parents))
     levels = tuple(
         np.flatnonzero(depth_arr == d).astype(np.int32) for d in range(depth_arr.max() + 1)
     )

