@@ -94,5 +94,6 @@ from ._skinning import (
 )
 from ._topology import Topology as Topology
 from .assets import load_asset as load_asset
+from .assets._decimate import load_decimated as load_decimated
 
 __version__ = "0.1.0"
