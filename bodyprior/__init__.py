@@ -16,6 +16,7 @@ from ._body import (
     phenotype_vector as phenotype_vector,
     regress_joints as regress_joints,
     rest_shape as rest_shape,
+    target_weights as target_weights,
     sscape_rig as sscape_rig,
     variation_weights as variation_weights,
 )

@@ -234,7 +234,6 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         regressor_index=jnp.asarray(a[f"rig_{rig}_regressor_index"], jnp.int32),
         regressor_weight=jnp.asarray(a[f"rig_{rig}_regressor_weight"], dt),
     )
-    _ = nb
     return DefaultBody(
         template=jnp.asarray(a["template_vertices"], dt),
         faces=jnp.asarray(a["faces"], jnp.int32),
@@ -286,11 +285,15 @@ def load_default_body(
 # kernels (one body; vmap for batches)
 
 
+def target_weights(variation_w: Float[Array, "24"], masks: Float[Array, "T 24"]) -> Float[Array, " T"]:
+    """MakeHuman's product rule: a target's weight is the product of the weights of the variations it names."""
+    return jnp.prod(variation_w * masks + (1.0 - masks), axis=-1)
+
+
 def macro_coefficients(body: DefaultBody, phenotypes: Float[Array, "11"]) -> Float[Array, " T"]:
     """Weights of the 408 non-breast phenotype targets (product rule over variation weights)."""
     w = variation_weights(phenotypes, body.variation_labels).astype(body.macro_masks.dtype)
-    m = body.macro_masks
-    return jnp.prod(w * m + (1.0 - m), axis=-1)
+    return target_weights(w, body.macro_masks)
 
 
 def _shape_terms(body: DefaultBody, phenotypes, local_changes, facial_actions):
@@ -298,8 +301,7 @@ def _shape_terms(body: DefaultBody, phenotypes, local_changes, facial_actions):
     p = jnp.asarray(phenotypes, body.template.dtype)
     terms = [(macro_coefficients(body, p) @ body.macro_coef, body.basis, body.rig.head_basis)]
     if body.breast_basis is not None:
-        w = variation_weights(p, body.variation_labels).astype(p.dtype)
-        cb = jnp.prod(w * body.breast_masks + (1.0 - body.breast_masks), axis=-1)
+        cb = target_weights(variation_weights(p, body.variation_labels).astype(p.dtype), body.breast_masks)
         terms.append((cb @ body.breast_coef, body.breast_basis, body.rig.head_breast))
     if local_changes is not None:
         x = jnp.asarray(local_changes, p.dtype)

@@ -84,8 +84,7 @@ def independent_rows(M: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
 class Extended:
     """Vertex displacements extended with joint-point rows: joint point p = mean of base-mesh vertices."""
 
-    def __init__(self, body_n: int, point_members: list[tuple[int, ...]], n_base: int):
-        self.body_n = body_n
+    def __init__(self, point_members: list[tuple[int, ...]], n_base: int):
         rows, cols, vals = [], [], []
         for p, members in enumerate(point_members):
             for m in members:
@@ -137,7 +136,10 @@ def sparse_int16(disp_units: np.ndarray):
     return np.asarray(ptr, np.int64), np.concatenate(idxs), np.concatenate(vals)
 
 
-def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int):
+def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int | None = None):
+    """Top-k skin weights per body vertex, renormalised. k defaults to the largest number of bones any body
+    vertex has, so that the top-k storage is exact. Returns (indices, weights, that largest count, the largest
+    fraction of a vertex's weight dropped by top-k)."""
     J = len(bone_weights)
     W = np.zeros((n_body, J))
     for j, lst in enumerate(bone_weights):
@@ -147,6 +149,7 @@ def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int):
     counts = (W > 0).sum(1)
     if (counts == 0).any():
         raise ValueError(f"{int((counts == 0).sum())} body vertices carry no skin weight")
+    k = int(counts.max()) if k is None else k
     order = np.argsort(-W, axis=1, kind="stable")[:, :k]
     w = np.take_along_axis(W, order, 1)
     dropped = 1.0 - w.sum(1) / W.sum(1)
@@ -182,6 +185,7 @@ def phenotype_samples(masks: np.ndarray, n: int, seed: int) -> np.ndarray:
     P = rng.uniform(0.0, 1.0, (n, len(PHENOTYPES)))
     P[:, PHENOTYPES.index("age")] = rng.uniform(1.0 / 3.0, 1.0, n)
     W = np.stack([np.asarray(variation_weights(p, tuple(S.VARIATION_LABELS))) for p in P])
+    # The product rule of bodyprior.target_weights, in float64 on the host (jnp would compute it in float32).
     return np.prod(W[:, None, :] * masks[None] + (1.0 - masks[None]), axis=-1)
 
 
@@ -209,7 +213,7 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
         for p in heads + tails:
             if p not in point_members:
                 point_members.append(p)
-    ext = Extended(n_body, point_members, n_base)
+    ext = Extended(point_members, n_base)
     n_points = len(point_members)
     template_points = ext.points(template_base)
     log(f"rigs {RIGS}: {n_points} distinct joint points")
@@ -309,10 +313,7 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
     for name, (labels, parents, heads, tails, rolls, bweights) in rigs.items():
         head_pt = np.array([point_members.index(h) for h in heads], np.int32)
         tail_pt = np.array([point_members.index(t) for t in tails], np.int32)
-        # k = the largest number of bones any body vertex has: the top-k storage is then exact.
-        k = max(int(((np.bincount([int(v) for lst in bweights for v, _ in lst if v < n_body], minlength=n_body)))
-                     .max()), 1)
-        sidx, sw, maxb, dropped = skin_weights(bweights, n_body, k)
+        sidx, sw, maxb, dropped = skin_weights(bweights, n_body)  # exact: k = max bones per vertex
         reg_idx, reg_w, resid = [], [], []
         for p in head_pt:
             if p not in regressors:  # rigs share joint points
@@ -338,12 +339,12 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
         rig_meta[name] = dict(
             bones=len(labels),
             max_bones_per_vertex=maxb,
-            skin_top_k=k,
+            skin_top_k=sidx.shape[1],
             max_weight_dropped_by_top_k=dropped,
             regressor_max_error_m=max(resid),
             regressor_median_joint_max_error_m=float(np.median(resid)),
         )
-        log(f"rig {name}: {len(labels)} bones, <= {maxb} bones/vertex (top-{k} drops <= {dropped:.3f} "
+        log(f"rig {name}: {len(labels)} bones, <= {maxb} bones/vertex (top-{sidx.shape[1]} drops <= {dropped:.3f} "
             f"of a vertex's weight), vertex joint regressor held-out max error {max(resid) * 1e3:.1f} mm (median joint {np.median(resid) * 1e3:.1f} mm)")
 
     from ._landmarks import landmark_table
