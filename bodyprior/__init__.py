@@ -4,6 +4,7 @@ Public API. Implementation lives in private modules; model families are subpacka
 (`bodyprior.sscape`). Units are metres and radians; the world frame is Z up, the body facing -Y.
 """
 
+from . import dspp as dspp
 from . import sscape as sscape
 from ._body import (
     PHENOTYPES as PHENOTYPES,
