@@ -63,6 +63,12 @@ from ._mpii import (
 from ._serialize import (
     FORMAT_NAME as FORMAT_NAME,
 )
+from ._template import (
+    RegistrationTemplate as RegistrationTemplate,
+)
+from ._template import (
+    registration_template as registration_template,
+)
 from ._serialize import (
     FORMAT_VERSION as FORMAT_VERSION,
 )

@@ -1,0 +1,57 @@
+"""Registration template: vertex subset, landmarks, masks, refitted joint regressor."""
+
+import jax
+import jax.random as jr
+import numpy as np
+import pytest
+
+import bodyprior as bp
+
+
+@pytest.fixture(scope="module")
+def tmpl():
+    return bp.sscape.registration_template()
+
+
+def test_template_is_vertex_subset(tmpl):
+    body = bp.load_default_body("cmu_mb")
+    vmap, faces = bp.load_decimated()
+    assert tmpl.vertices.shape == (6449, 3)
+    np.testing.assert_array_equal(np.asarray(tmpl.faces), faces)
+    np.testing.assert_allclose(np.asarray(tmpl.vertices), np.asarray(body.template)[vmap])
+    np.testing.assert_allclose(np.asarray(tmpl.restrict(body.template)), np.asarray(tmpl.vertices))
+    assert len(tmpl.landmark_names) == len(body.landmark_names) == tmpl.landmark_index.shape[0]
+    assert float(tmpl.landmark_error.max()) < 0.015
+    assert int((np.asarray(tmpl.landmark_error) == 0).sum()) > len(tmpl.landmark_names) // 2
+
+
+def test_masks_and_skin(tmpl):
+    v = np.asarray(tmpl.vertices)
+    hand, head = np.asarray(tmpl.hand_mask), np.asarray(tmpl.head_mask)
+    assert 200 < hand.sum() < 2000 and 200 < head.sum() < 2500
+    assert not (hand & head).any()
+    # hands are the lateral extremes of the A-pose body, the head is on top
+    assert np.abs(v[hand, 0]).min() > 0.5 * np.abs(v[:, 0]).max()
+    assert v[head, 2].min() > np.percentile(v[:, 2], 75)
+    np.testing.assert_allclose(np.asarray(tmpl.skin_weight).sum(1), 1.0, atol=1e-6)
+
+
+def test_regressor_recovers_exact_joints(tmpl):
+    body = bp.load_default_body("cmu_mb")
+    phen, _, _ = bp.sample_phenotypes(jr.PRNGKey(7), 16)
+    verts, joints = jax.vmap(lambda p: bp.rest_shape(body, p))(phen)
+    w = np.asarray(tmpl.joint_regressor_weights)
+    np.testing.assert_allclose(w.sum(1), 1.0, atol=2e-5)
+    pred = np.einsum("jm,sjmc->sjc", w, np.asarray(tmpl.restrict(verts))[:, tmpl.joint_regressor_indices])
+    err = np.linalg.norm(pred - np.asarray(joints), axis=-1)
+    assert err.max() < 0.01 and tmpl.regressor_max_error < 0.01
+    # the kwargs build an S-SCAPE model directly
+    space = bp.sscape.learn(tmpl.restrict(verts), tmpl.faces, n_components=4, **tmpl.rig_kwargs())
+    assert space.mean.shape == (6449, 3)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="`rig`"):
+        bp.sscape.registration_template("smpl")
+    with pytest.raises(ValueError, match="`n_fit`"):
+        bp.sscape.registration_template(n_fit=3)
