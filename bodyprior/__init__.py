@@ -54,6 +54,12 @@ from ._kinematics import (
     validate_parents as validate_parents,
     world_transforms as world_transforms,
 )
+from ._metrics import (
+    generative_metrics as generative_metrics,
+    mean_vertex_distance_metric as mean_vertex_distance_metric,
+    pairwise_distances as pairwise_distances,
+    pose_geodesic_metric as pose_geodesic_metric,
+)
 from ._population import (
     Population as Population,
     sample_phenotypes as sample_phenotypes,
