@@ -165,13 +165,25 @@ def _screen_transform(vertices, axes, size, fit):
 
 
 def _rasterize(vertices, faces, view, size, fit) -> _Raster:
-    h, w = size
     axes = _camera_axes(view)
     sx, sy, sz = _screen_transform(vertices, axes, size, fit)
+    tri_id, bary = _rasterize_screen(sx, sy, sz, faces, size)
+    return _Raster(tri_id, bary, axes)
+
+
+def _rasterize_screen(sx, sy, sz, faces, size) -> tuple[np.ndarray, np.ndarray]:
+    """Z-buffer rasterisation of vertices already in screen space (any camera model).
+
+    `sx`, `sy`: `(V,)` pixel coordinates (pixel `(i, j)` has centre `(j + 0.5, i + 0.5)`); `sz`:
+    `(V,)` a quantity affine in screen space within each triangle, larger = nearer (orthographic:
+    height towards the camera; perspective: `1 / depth`). Returns `(tri_id (h, w), bary (h, w, 3))`
+    with screen-space barycentrics.
+    """
+    h, w = size
     tri_id = np.full(h * w, -1, dtype=np.int64)
     bary = np.zeros((h * w, 3), dtype=np.float64)
     if faces.shape[0] == 0:
-        return _Raster(tri_id.reshape(h, w), bary.reshape(h, w, 3), axes)
+        return tri_id.reshape(h, w), bary.reshape(h, w, 3)
     x0, x1, x2 = sx[faces].T
     y0, y1, y2 = sy[faces].T
     area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)  # twice the signed screen area
@@ -239,7 +251,7 @@ def _rasterize(vertices, faces, view, size, fit) -> _Raster:
         tri_id[pw] = tris[rep[inside][sel]]
         bl0, bl1 = l0[inside][sel], l1[inside][sel]
         bary[pw] = np.stack([bl0, bl1, 1.0 - bl0 - bl1], axis=1)
-    return _Raster(tri_id.reshape(h, w), bary.reshape(h, w, 3), axes)
+    return tri_id.reshape(h, w), bary.reshape(h, w, 3)
 
 
 def _shade(vertices, faces, r: _Raster, light_dir, smooth=True) -> np.ndarray:
