@@ -21,6 +21,7 @@ from ._body import (
     sscape_rig as sscape_rig,
     variation_weights as variation_weights,
 )
+from ._bvh import Bvh as Bvh, read_bvh as read_bvh, write_bvh as write_bvh
 from ._geometry import (
     barycentric_points as barycentric_points,
     closest_points_on_mesh as closest_points_on_mesh,
