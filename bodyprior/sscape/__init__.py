@@ -78,3 +78,15 @@ from ._serialize import (
 from ._serialize import (
     save_model as save_model,
 )
+from ._evaluate import (
+    THRESHOLDS_20MM as THRESHOLDS_20MM,
+    THRESHOLDS_50MM as THRESHOLDS_50MM,
+    FittingError as FittingError,
+    cumulative_curve as cumulative_curve,
+    error_colormap_png as error_colormap_png,
+    fitting_error as fitting_error,
+    fitting_error_batch as fitting_error_batch,
+    gt_error as gt_error,
+    mean_vertex_error as mean_vertex_error,
+    plot_cumulative_curves as plot_cumulative_curves,
+)
