@@ -427,8 +427,11 @@ def _parse_text(path: str, text: str, frame_time: float | None) -> Bvh:
             f"{path}:{last}: {kind}: 'Frames: {n_frames}' but {len(rows)} frame lines follow."
         )
     try:
-        motion = np.array(" ".join(s for _, s in rows).split(), dtype=np.float64)
-        ok = motion.size == n_frames * C
+        if n_frames:
+            motion = np.loadtxt([s for _, s in rows], dtype=np.float64, ndmin=2, comments=None)
+        else:
+            motion = np.zeros((0, C))
+        ok = motion.shape == (n_frames, C)
     except ValueError:
         ok = False
     if not ok or not np.all(np.isfinite(motion)):
