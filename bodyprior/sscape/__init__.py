@@ -90,3 +90,20 @@ from ._evaluate import (
     mean_vertex_error as mean_vertex_error,
     plot_cumulative_curves as plot_cumulative_curves,
 )
+from ._scan import (
+    Scan as Scan,
+    ScannerConfig as ScannerConfig,
+    ScanTruth as ScanTruth,
+    check_scan as check_scan,
+    estimate_normals as estimate_normals,
+    pad_scans as pad_scans,
+    simulate_scan as simulate_scan,
+    simulate_scans as simulate_scans,
+)
+from ._scanio import (
+    detect_units as detect_units,
+    read_lnd as read_lnd,
+    read_scan as read_scan,
+    write_lnd as write_lnd,
+    write_scan as write_scan,
+)

@@ -1,0 +1,340 @@
+"""Virtual laser scanner (holes, noise, outliers, normals, landmarks, density) and scan IO."""
+
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import bodyprior as bp
+from bodyprior import sscape
+
+# The rest body (A-pose) of the default body: a full-resolution subject without any compile cost.
+
+
+@pytest.fixture(scope="module")
+def body():
+    return bp.load_default_body("cmu_mb")
+
+
+@pytest.fixture(scope="module")
+def subject(body):
+    v = np.asarray(body.template, np.float64)
+    f = np.asarray(body.faces, np.int64)
+    return v, f, v[np.asarray(body.landmark_index)], body.landmark_names
+
+
+@pytest.fixture(scope="module")
+def raw(subject):
+    """All raw hits (no sub-sampling), exact normals: for coverage statistics."""
+    cfg = sscape.ScannerConfig(n_points=None, outlier_fraction=0.0, normal_source="mesh")
+    return sscape.simulate_scan(jr.PRNGKey(0), *subject, cfg)
+
+
+@pytest.fixture(scope="module")
+def default_scan(subject):
+    return sscape.simulate_scan(jr.PRNGKey(1), *subject)
+
+
+def _face_geometry(v, f):
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    return area, cross / (2 * area[:, None]), v[f].mean(1)
+
+
+def _relative_density(truth, v, f, region):
+    """Points per area in `region` (face mask) relative to the whole body."""
+    area, _, _ = _face_geometry(v, f)
+    face = np.asarray(truth.face)
+    cnt = np.bincount(face[face >= 0], minlength=f.shape[0])
+    return (cnt[region].sum() / area[region].sum()) / (cnt.sum() / area.sum())
+
+
+def test_holes_where_real_scanners_have_them(raw, subject, body):
+    v, f, _, names = subject
+    scan, truth = raw
+    area, fn, cen = _face_geometry(v, f)
+    zmin, zmax = v[:, 2].min(), v[:, 2].max()
+    lm = {n: v[i] for n, i in zip(names, np.asarray(body.landmark_index))}
+    soles = (fn[:, 2] < -0.8) & (cen[:, 2] < zmin + 0.03)
+    head_top = (fn[:, 2] > 0.9) & (cen[:, 2] > zmax - 0.05)
+    crotch = np.linalg.norm(cen - lm["Crotch"], axis=1) < 0.04
+    chest = np.linalg.norm(cen - lm["Substernale"], axis=1) < 0.08
+    assert soles.sum() > 50 and head_top.sum() > 20 and crotch.sum() > 20
+    assert _relative_density(truth, v, f, soles) < 0.1
+    assert _relative_density(truth, v, f, head_top) < 0.3
+    assert _relative_density(truth, v, f, crotch) < 0.5
+    assert _relative_density(truth, v, f, chest) > 0.7
+    # raw density is well above the 3 x 6,449 points the paper sub-samples to
+    assert scan.n_points > 3 * 3 * 6449
+
+
+def test_truth_is_on_the_surface_and_noise_matches(default_scan, subject):
+    v, f, _, _ = subject
+    scan, truth = default_scan
+    face, bary = np.asarray(truth.face), np.asarray(truth.bary)
+    inl = ~np.asarray(truth.is_outlier)
+    assert (face[inl] >= 0).all()
+    np.testing.assert_allclose(bary[inl].sum(1), 1.0, atol=1e-12)
+    assert bary.min() >= 0
+    on_mesh = np.einsum("pk,pkc->pc", bary[inl], v[f[face[inl]]])
+    np.testing.assert_allclose(on_mesh, np.asarray(truth.true_points)[inl], atol=1e-12)
+    r = np.linalg.norm(np.asarray(scan.points) - np.asarray(truth.true_points), axis=1)[inl]
+    rms = np.sqrt(np.mean(r**2))
+    assert abs(rms - 0.001) < 0.05 * 0.001, rms
+
+
+def test_outliers(default_scan):
+    scan, truth = default_scan
+    out = np.asarray(truth.is_outlier)
+    assert scan.n_points == 19347
+    assert out.sum() == round(0.02 * scan.n_points)
+    # gross range errors are far from their surface point; stray points have no face
+    d = np.linalg.norm(np.asarray(scan.points) - np.asarray(truth.true_points), axis=1)
+    face = np.asarray(truth.face)
+    gross = out & (face >= 0)
+    assert gross.sum() > 0.3 * out.sum() and (face[out] == -1).sum() > 0.3 * out.sum()
+    assert d[gross].min() >= 0.02 - 1e-12
+
+
+def test_normals_estimated_from_points(default_scan, subject):
+    v, f, _, _ = subject
+    scan, truth = default_scan
+    n = np.asarray(scan.normals)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-9)
+    inl = ~np.asarray(truth.is_outlier)
+    _, fn, _ = _face_geometry(v, f)
+    cosang = np.sum(n[inl] * fn[np.asarray(truth.face)[inl]], axis=1)
+    assert np.median(cosang) > np.cos(np.deg2rad(10.0))
+    assert (cosang < 0).mean() < 0.01  # oriented outwards almost everywhere
+
+
+def test_landmark_noise_and_missing(subject):
+    v, f, lm, names = subject
+    cfg = sscape.ScannerConfig(n_points=2000, landmark_sigma=0.0075, landmark_missing=0.3)
+    errs, present = [], []
+    for i in range(3):
+        scan, _ = sscape.simulate_scan(jr.PRNGKey(10 + i), v, f, lm, names, cfg)
+        m = np.asarray(scan.landmark_mask)
+        errs.append((np.asarray(scan.landmarks) - lm)[m])
+        present.append(m)
+        assert np.all(np.asarray(scan.landmarks)[~m] == 0)
+        assert scan.landmark_names == tuple(names)
+    e = np.concatenate(errs)
+    assert 0.85 * 0.0075 < e.std() < 1.15 * 0.0075
+    assert 0.55 < np.concatenate(present).mean() < 0.85
+
+
+def test_density_and_extra_holes(subject, raw):
+    v, f, lm, names = subject
+    coarse = sscape.ScannerConfig(n_points=None, spacing=0.008, outlier_fraction=0.0)
+    s8, _ = sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names, coarse)
+    ratio = raw[0].n_points / s8.n_points
+    assert 3.3 < ratio < 4.7  # hits scale with 1 / spacing^2
+    holey, _ = sscape.simulate_scan(
+        jr.PRNGKey(0), v, f, lm, names, coarse.replace(hole_fraction=0.3)
+    )
+    assert abs(holey.n_points / s8.n_points - 0.7) < 0.005
+    small, _ = sscape.simulate_scan(
+        jr.PRNGKey(0), v, f, lm, names, sscape.ScannerConfig(n_points=5000)
+    )
+    assert small.n_points == 5000
+
+
+def test_reproducible(subject):
+    cfg = sscape.ScannerConfig(n_points=3000)
+    a, _ = sscape.simulate_scan(jr.PRNGKey(3), *subject, cfg)
+    b, _ = sscape.simulate_scan(jr.PRNGKey(3), *subject, cfg)
+    c, _ = sscape.simulate_scan(jr.PRNGKey(4), *subject, cfg)
+    np.testing.assert_array_equal(np.asarray(a.points), np.asarray(b.points))
+    assert not np.array_equal(np.asarray(a.points), np.asarray(c.points))
+
+
+def test_simulate_scans_batches_and_pads(subject, body):
+    v, f, _, names = subject
+    pop = np.stack([v, v * 1.05])  # a taller subject has more hits
+    cfg = sscape.ScannerConfig(n_points=None, spacing=0.012)
+    scans, truths = sscape.simulate_scans(
+        jr.PRNGKey(0), pop, f, body.landmark_index, names, cfg, progress=False
+    )
+    P = scans.points.shape[1]
+    assert scans.points.shape == (2, P, 3) and truths.face.shape == (2, P)
+    counts = np.asarray(scans.point_mask).sum(1)
+    assert counts.max() == P and counts.min() < P
+    i = int(np.argmin(counts))
+    pad = ~np.asarray(scans.point_mask[i])
+    assert (np.asarray(truths.face[i])[pad] == -1).all()
+    # padding repeats real points of the same scan
+    real = {tuple(p) for p in np.asarray(scans.points[i])[~pad]}
+    assert all(tuple(p) in real for p in np.asarray(scans.points[i])[pad])
+    sscape.check_scan(scans)
+    with pytest.raises(ValueError, match="`n_points`"):
+        sscape.pad_scans([sscape.simulate_scan(jr.PRNGKey(0), *subject, cfg)[0]], 5)
+    with pytest.raises(ValueError, match="`scans`"):
+        sscape.pad_scans([])
+
+
+def test_config_and_input_errors(subject):
+    v, f, lm, names = subject
+    with pytest.raises(ValueError, match="`noise_sigma`"):
+        sscape.ScannerConfig(noise_sigma=-0.001)
+    with pytest.raises(ValueError, match="`normal_source`"):
+        sscape.ScannerConfig(normal_source="magic")
+    with pytest.raises(ValueError, match="`hole_fraction`"):
+        sscape.ScannerConfig.hard(hole_fraction=2.0)
+    hard = sscape.ScannerConfig.hard()
+    assert (hard.hole_fraction, hard.noise_sigma, hard.outlier_fraction, hard.landmark_sigma) == (
+        0.3,
+        0.002,
+        0.05,
+        0.01,
+    )
+    with pytest.raises(ValueError, match="`vertices`.*metres"):
+        sscape.simulate_scan(jr.PRNGKey(0), v * 1000, f, lm * 1000, names)
+    with pytest.raises(ValueError, match="`landmark_names`"):
+        sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names[:3])
+    with pytest.raises(ValueError, match="`vertices`"):
+        sscape.simulate_scan(jr.PRNGKey(0), v[:, :2], f, lm, names)
+    with pytest.raises(ValueError, match="`config`"):
+        sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names, {"noise_sigma": 0.001})
+
+
+def _scan(points, normals=None, mask=None, names=("a", "b")):
+    p = jnp.asarray(points)
+    n = (
+        jnp.asarray(normals)
+        if normals is not None
+        else jnp.tile(jnp.array([0.0, 0.0, 1.0]), (p.shape[0], 1))
+    )
+    m = jnp.ones(p.shape[0], bool) if mask is None else jnp.asarray(mask)
+    return sscape.Scan(
+        p, n, m, jnp.zeros((len(names), 3)), jnp.ones(len(names), bool), tuple(names)
+    )
+
+
+def test_check_scan_errors():
+    rng = np.random.default_rng(0)
+    body_pts = rng.uniform([-0.3, -0.2, -0.85], [0.3, 0.2, 0.85], (500, 3))
+    sscape.check_scan(_scan(body_pts))
+    with pytest.raises(ValueError, match="empty"):
+        sscape.check_scan(_scan(body_pts, mask=np.zeros(500, bool)))
+    with pytest.raises(ValueError, match="too few points"):
+        sscape.check_scan(_scan(body_pts[:50]))
+    bad = body_pts.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(ValueError, match=r"`scan.points` contains NaN"):
+        sscape.check_scan(_scan(bad))
+    with pytest.raises(ValueError, match="millimetres"):
+        sscape.check_scan(_scan(body_pts * 1000))
+    with pytest.raises(ValueError, match="`scan.normals` must be unit"):
+        sscape.check_scan(_scan(body_pts, normals=np.ones((500, 3))))
+    with pytest.raises(ValueError, match="must be a bodyprior.sscape.Scan"):
+        sscape.check_scan(body_pts)
+    with pytest.raises(ValueError, match="`normals` must have the shape"):
+        _scan(body_pts, normals=np.ones((499, 3)))
+    with pytest.raises(ValueError, match="`landmark_names`"):
+        z = jnp.zeros((500, 3))
+        sscape.Scan(z, z, jnp.ones(500, bool), jnp.zeros((2, 3)), jnp.ones(2, bool), ("a",))
+
+
+# --------------------------------------------------------------------------------------------------
+# IO
+# --------------------------------------------------------------------------------------------------
+
+_LND = """SUBJECT_ID = test.ply
+SCAN_TYPE  = NO TYPE
+AUX_LAND = 4
+STANDARD =
+AUX =
+ 1   0   1   45.05   33.25  -25.88  518.00 Sellion
+ 2 -999 -999   0.00    0.00    0.00    0.00 Rt. Infraorbitale
+ 3   0   3   85.81   64.56  -40.78  494.00 Rt. Metacarpal Phal. V
+ 4   0  54  166.04   41.08  167.24 -554.00 Rt. Femoral Lateral Epicn 
+END =
+ 5   0   5    1.00    1.00    1.00    1.00 Lt. Tragion
+"""
+
+
+def test_read_lnd_caesar_format(tmp_path):
+    p = tmp_path / "s.lnd"
+    p.write_text(_LND)
+    names, pos = sscape.read_lnd(p)
+    assert names == (
+        "Sellion",
+        "Rt. Infraorbitale",
+        "Rt. Metacarpal Phal. V",
+        "Rt. Femoral Lateral Epicn",
+    )
+    np.testing.assert_allclose(pos[0], [0.03325, -0.02588, 0.518])
+    assert np.isnan(pos[1]).all()
+    np.testing.assert_allclose(pos[3], [0.04108, 0.16724, -0.554])
+    with pytest.raises(ValueError, match="no landmark line"):
+        (tmp_path / "e.lnd").write_text("AUX =\nEND =\n")
+        sscape.read_lnd(tmp_path / "e.lnd")
+    with pytest.raises(ValueError, match="does not exist"):
+        sscape.read_lnd(tmp_path / "nope.lnd")
+
+
+@pytest.mark.parametrize("ext", [".ply", ".obj"])
+def test_scan_round_trip(tmp_path, default_scan, ext):
+    scan, _ = default_scan
+    p, lp = tmp_path / f"s{ext}", tmp_path / "s.lnd"
+    sscape.write_scan(p, scan, landmarks_path=lp)
+    back, info = sscape.read_scan(p, landmarks_path=lp, return_info=True)
+    tol = 1e-12 if ext == ".ply" else 1e-8
+    np.testing.assert_allclose(np.asarray(back.points), np.asarray(scan.points), atol=tol)
+    np.testing.assert_allclose(np.asarray(back.normals), np.asarray(scan.normals), atol=1e-8)
+    np.testing.assert_array_equal(np.asarray(back.landmark_mask), np.asarray(scan.landmark_mask))
+    m = np.asarray(scan.landmark_mask)
+    np.testing.assert_allclose(
+        np.asarray(back.landmarks)[m], np.asarray(scan.landmarks)[m], atol=1e-6
+    )
+    assert back.landmark_names == scan.landmark_names
+    assert info["units"] == "m" and info["normals"] == "file" and info["landmark_units"] == "mm"
+
+
+def test_read_scan_units_and_normals(tmp_path, subject, default_scan):
+    v, f, lm, names = subject
+    # A mesh scan and landmarks in millimetres: detected, converted, normals from the faces.
+    bp.write_ply(tmp_path / "mm.ply", v * 1000.0, f)
+    sscape.write_lnd(tmp_path / "mm.lnd", names, lm)  # .lnd is always millimetres
+    scan, info = sscape.read_scan(
+        tmp_path / "mm.ply", landmarks_path=tmp_path / "mm.lnd", return_info=True
+    )
+    assert info["units"] == "mm" and info["scale"] == 0.001 and info["normals"] == "mesh"
+    np.testing.assert_allclose(np.asarray(scan.points), v, atol=1e-6)
+    assert np.asarray(scan.landmark_mask).all()
+    np.testing.assert_allclose(np.asarray(scan.landmarks), lm, atol=1e-6)
+    # A point cloud without normals (here a simulated scan, in mm) gets estimated outward normals.
+    scan, truth = default_scan
+    bp.write_ply(tmp_path / "pc.ply", np.asarray(scan.points) * 1000.0)
+    pc, info = sscape.read_scan(tmp_path / "pc.ply", units="mm", return_info=True)
+    assert info["normals"] == "estimated"
+    np.testing.assert_allclose(np.asarray(pc.points), np.asarray(scan.points), atol=1e-6)
+    _, fn, _ = _face_geometry(v, f)
+    inl = ~np.asarray(truth.is_outlier)
+    cos = np.sum(np.asarray(pc.normals)[inl] * fn[np.asarray(truth.face)[inl]], axis=1)
+    assert (cos > 0).mean() > 0.97
+    sub = sscape.read_scan(tmp_path / "pc.ply", units="mm", n_points=4000, seed=1)
+    assert sub.n_points == 4000
+    # Sizes that are neither metres nor millimetres are refused, naming `units`.
+    bp.write_ply(tmp_path / "cm.ply", v * 100.0)
+    with pytest.raises(ValueError, match="`units`"):
+        sscape.read_scan(tmp_path / "cm.ply")
+    assert sscape.read_scan(tmp_path / "cm.ply", units="cm").n_points == v.shape[0]
+    with pytest.raises(ValueError, match="`units` must be"):
+        sscape.read_scan(tmp_path / "cm.ply", units="inch")
+
+
+def test_read_scan_errors(tmp_path):
+    (tmp_path / "empty.ply").write_text("")
+    with pytest.raises(ValueError, match="empty"):
+        sscape.read_scan(tmp_path / "empty.ply")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv nan 1 1\nv 0 1.7 0\n")
+    with pytest.raises(ValueError, match="NaN"):
+        sscape.read_scan(tmp_path / "nan.obj")
+    rng = np.random.default_rng(0)
+    bp.write_ply(tmp_path / "few.ply", rng.uniform(0, 1.7, (40, 3)))
+    with pytest.raises(ValueError, match="too few points"):
+        sscape.read_scan(tmp_path / "few.ply", units="m")
+    with pytest.raises(ValueError, match=r"\.ply or \.obj"):
+        sscape.write_scan(tmp_path / "x.xyz", _scan(rng.uniform(-0.8, 0.8, (200, 3))))
