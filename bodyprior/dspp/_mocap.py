@@ -239,9 +239,12 @@ class PoseSet(eqx.Module):
 
     def subset(self, index) -> PoseSet:
         """The poses at `index` (int array, boolean mask or slice); clip names are kept."""
-        return PoseSet(
-            self.euler[index], self.clip[index], self.clip_names, self.joint_names, self.fps
-        )
+        if is_tracer(self.euler) or is_tracer(self.clip):
+            euler, clip = self.euler[index], self.clip[index]
+        else:  # host data: index in NumPy (no compilation per index shape)
+            euler = jnp.asarray(np.asarray(self.euler)[index])
+            clip = jnp.asarray(np.asarray(self.clip)[index])
+        return PoseSet(euler, clip, self.clip_names, self.joint_names, self.fps)
 
     def poses_per_clip(self) -> np.ndarray:
         """Number of poses of each clip, shape `(len(clip_names),)`."""

@@ -1,0 +1,407 @@
+"""Mocap retargeting onto the cmu_mb rig, pose sets, clip splits, pose pictures."""
+
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import bodyprior as bp
+from bodyprior.dspp import (
+    EULER_ORDER,
+    POSE_JOINTS,
+    PoseSet,
+    load_mocap,
+    pose_euler,
+    render_poses,
+    rig_pose,
+    split_by_clip,
+)
+from bodyprior.dspp import _mocap as M
+
+_REPO = Path(__file__).resolve().parents[1]
+
+
+def _mocap_dir() -> Path | None:
+    env = os.environ.get("BODYPRIOR_MOCAP_DIR")
+    candidates = [Path(env)] if env else []
+    # CI: ../shared/data/mocap next to the checkout; this machine: /work/shared/data/mocap
+    candidates += [_REPO.parent / "shared/data/mocap", _REPO.parents[1] / "shared/data/mocap"]
+    return next((c for c in candidates if c.is_dir()), None)
+
+
+MOCAP = _mocap_dir()
+needs_data = pytest.mark.skipif(MOCAP is None, reason="shared mocap data not found")
+
+
+@pytest.fixture(scope="module")
+def body():
+    return bp.load_default_body("cmu_mb")
+
+
+# --------------------------------------------------------------------------------------------------
+# synthetic skeletons built from the rig, with a different rest posture
+
+
+def _rot(rng, max_deg):
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    return np.asarray(bp.axis_angle_to_matrix(axis * np.deg2rad(rng.uniform(0, max_deg))))
+
+
+def _skeleton(spec, rng, n_frames, perturb_deg=35.0, motion_deg=50.0):
+    """A Bvh from `spec` = [(name, parent, bodyprior position, end position or None)].
+
+    Bone directions are rotated by up to `perturb_deg` (so the rest posture differs from the rig's)
+    and lengths scaled; channels get random orders (per joint); motion is random.
+    """
+    names = [s[0] for s in spec]
+    parents = [-1 if s[1] is None else names.index(s[1]) for s in spec]
+    pos = np.array([s[2] for s in spec])
+    offsets, end = np.zeros((len(spec), 3)), np.full((len(spec), 3), np.nan)
+    for j, p in enumerate(parents):
+        if p >= 0:
+            offsets[j] = _rot(rng, perturb_deg) @ (pos[j] - pos[p]) * rng.uniform(0.8, 1.3)
+        if spec[j][3] is not None:
+            end[j] = _rot(rng, perturb_deg) @ (np.asarray(spec[j][3]) - pos[j])
+    offsets, end = offsets @ M._M, end @ M._M  # bodyprior axes -> BVH axes (M^T x)
+    perms = ["ZXY", "ZYX"]  # the orders of the real files (test_bvh checks all six)
+    channels = []
+    for j in range(len(spec)):
+        rot = tuple(f"{a}rotation" for a in perms[rng.integers(2)])
+        channels.append(("Xposition", "Yposition", "Zposition") + rot if j == 0 else rot)
+    C = sum(len(c) for c in channels)
+    motion = rng.uniform(-motion_deg, motion_deg, size=(n_frames, C))
+    motion[:, :3] = rng.normal(size=(n_frames, 3))
+    return bp.Bvh(tuple(names), tuple(parents), offsets, tuple(channels), end, 1 / 120, motion)
+
+
+def _rig_spec(body):
+    """CMU MotionBuilder-named 31-joint skeleton at the rig's rest joints (rig order is DFS)."""
+    heads, tails = M._rig_rest(body)
+    leaves = {"LeftToeBase", "RightToeBase", "Head", "LThumb", "RThumb"}
+    spec = []
+    for j, (n, p) in enumerate(zip(body.joint_names, body.parents)):
+        name = n.replace("HandFinger1", "HandIndex1")
+        parent = None if p < 0 else body.joint_names[p].replace("HandFinger1", "HandIndex1")
+        is_end = n in leaves or n.endswith("HandFinger1")
+        spec.append((name, parent, heads[j], tails[j] if is_end else None))
+    return spec
+
+
+def _daz_spec(body):
+    """A Daz-friendly-named skeleton (the joints the retargeting uses) at rig positions."""
+    heads, tails = M._rig_rest(body)
+    h = {n: heads[j] for j, n in enumerate(body.joint_names)}
+    t = {n: tails[j] for j, n in enumerate(body.joint_names)}
+    spec = [
+        ("hip", None, h["Hips"], None),
+        ("abdomen", "hip", h["LowerBack"], None),
+        ("chest", "abdomen", h["Spine1"], None),
+        ("neck", "chest", h["Neck"], None),
+        ("head", "neck", h["Head"], t["Head"]),
+    ]
+    for s, S in (("l", "Left"), ("r", "Right")):
+        spec += [
+            (f"{s}Collar", "chest", h[f"{S}Shoulder"], None),
+            (f"{s}Shldr", f"{s}Collar", h[f"{S}Arm"], None),
+            (f"{s}ForeArm", f"{s}Shldr", h[f"{S}ForeArm"], None),
+            (f"{s}Hand", f"{s}ForeArm", h[f"{S}Hand"], None),
+            (f"{s}Mid1", f"{s}Hand", h[f"{S}HandFinger1"], t[f"{S}HandFinger1"]),
+        ]
+    for s, S, H in (("r", "Right", "RHipJoint"), ("l", "Left", "LHipJoint")):
+        spec += [
+            (f"{s}Buttock", "hip", h[H] + (h[f"{S}UpLeg"] - h[H]) * 0.7 + [0, 0, 0.03], None),
+            (f"{s}Thigh", f"{s}Buttock", h[f"{S}UpLeg"], None),
+            (f"{s}Shin", f"{s}Thigh", h[f"{S}Leg"], None),
+            (f"{s}Foot", f"{s}Shin", h[f"{S}Foot"], t[f"{S}ToeBase"]),
+        ]
+    # depth-first order: children right after their parent's subtree
+    order, names = [], [s[0] for s in spec]
+
+    def visit(i):
+        order.append(spec[i])
+        for k, s in enumerate(spec):
+            if s[1] == names[i]:
+                visit(k)
+
+    visit(0)
+    return order
+
+
+# --------------------------------------------------------------------------------------------------
+# direction check: posed rig bones vs posed mocap bones, in the pelvis frame
+
+
+def _mocap_positions(bvh, frames):
+    """Independent FK of the BVH (bodyprior axes): joints and End Sites per frame."""
+    L = bvh.local_rotations(frames)
+    T = bvh.local_translations()[frames]
+    F, J = L.shape[:2]
+    G, P = np.empty_like(L), np.zeros((F, J, 3))
+    for j, p in enumerate(bvh.parents):
+        G[:, j] = L[:, j] if p < 0 else G[:, p] @ L[:, j]
+        P[:, j] = T[:, j] if p < 0 else P[:, p] + np.einsum("fab,fb->fa", G[:, p], T[:, j])
+    E = P + np.einsum("fjab,jb->fja", G, np.nan_to_num(bvh.end_offsets))
+    to_bp = lambda x: x @ M._M.T
+    return to_bp(P), to_bp(E), M._M @ G @ M._M.T
+
+
+@jax.jit
+def _rig_fk(body, eul, heads):
+    def one(e):
+        Rm = jax.vmap(bp.axis_angle_to_matrix)(rig_pose(body, e))
+        return bp.world_transforms(body.parents, Rm, heads, jnp.zeros(3, heads.dtype))
+
+    return jax.vmap(one)(eul)
+
+
+def _direction_errors(bvh, body, frames, table):
+    """Angle (degrees) between rig and mocap bone directions, (F, bones checked), and bone names."""
+    kind = M.skeleton_kind(bvh)
+    if kind == "cmu_3dsmax":
+        bvh = M._rename(bvh, M._MAX_TO_MB)
+    R = M.retarget_matrices(bvh, body, frames)
+    eul = M._to_euler(R)
+    P, E, G = _mocap_positions(bvh, frames)
+    heads, tails = M._rig_rest(body)
+    names = body.joint_names
+    root = bvh.joint_index(table["Hips"][0])
+    Gr, tr = _rig_fk(body, jnp.asarray(eul), jnp.asarray(heads))
+    Gr, tr = np.asarray(Gr), np.asarray(tr)
+    errs, checked = [], []
+    for n in POSE_JOINTS:
+        if n not in table or table[n][1] is None:
+            continue
+        drv, mend, (kind_end, bone) = table[n]
+        d = bvh.joint_index(drv)
+        if mend.endswith("/end"):
+            if mend[:-4] != drv:
+                continue
+            tip = E[:, d]
+        else:
+            e = bvh.joint_index(mend)
+            if bvh.parents[e] != d or np.linalg.norm(bvh.offsets[e]) < 1e-6:
+                continue  # its direction depends on a zero-length joint in between
+            tip = P[:, e]
+        vm = np.einsum("fba,fb->fa", G[:, root], tip - P[:, d])  # G_root^T v: pelvis frame
+        b = names.index(bone)
+        end_pt = tr[:, b] if kind_end == "head" else tr[:, b] + Gr[:, b] @ (tails[b] - heads[b])
+        vr = end_pt - tr[:, names.index(n)]
+        cos = np.sum(vm * vr, -1) / np.linalg.norm(vm, axis=-1) / np.linalg.norm(vr, axis=-1)
+        errs.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+        checked.append(n)
+    return np.stack(errs, 1), checked
+
+
+@pytest.mark.parametrize("kind", ["cmu_mb", "cmu_3dsmax", "daz"])
+def test_retarget_synthetic_bone_directions(body, kind):
+    rng = np.random.default_rng({"cmu_mb": 0, "cmu_3dsmax": 1, "daz": 2}[kind])
+    if kind == "daz":
+        bvh = _skeleton(_daz_spec(body), rng, 3)
+        table = M._MAPS["daz"]
+    else:
+        bvh = _skeleton(_rig_spec(body), rng, 3)
+        table = M._MAPS["cmu"]
+        if kind == "cmu_3dsmax":
+            inv = {v: k for k, v in M._MAX_TO_MB.items()}
+            bvh = M._rename(bvh, inv)
+    assert M.skeleton_kind(bvh) == kind
+    err, checked = _direction_errors(bvh, body, np.arange(3), table)
+    expect = 17 if kind == "daz" else 19
+    assert len(checked) == expect, checked
+    assert err.max() < 0.05, dict(zip(checked, err.max(0)))
+
+
+def test_retarget_rest_pose_is_swing_only(body):
+    """At the mocap rest pose (all channels zero) each rig joint only swings, with no twist about
+    its bone (the rest compensation is carried down the tree): an elbow unbends about its hinge."""
+    rng = np.random.default_rng(3)
+    bvh = _skeleton(_rig_spec(body), rng, 1)
+    bvh = bp.Bvh(bvh.joint_names, bvh.parents, bvh.offsets, bvh.channels, bvh.end_offsets, 0.01,
+                 np.zeros_like(bvh.motion))  # fmt: skip
+    R = M.retarget_matrices(bvh, body, [0])[0]
+    heads, _ = M._rig_rest(body)
+    names = body.joint_names
+    for k, n in enumerate(POSE_JOINTS):
+        entry = M._MAPS["cmu"][n]
+        child = entry[2][1]
+        if entry[2][0] != "head":
+            continue
+        b = heads[names.index(child)] - heads[names.index(n)]
+        b /= np.linalg.norm(b)
+        aa = np.asarray(bp.matrix_to_axis_angle(R[k]))
+        assert abs(aa @ b) < 1e-9, n  # rotation axis perpendicular to the bone: a pure swing
+
+
+def test_skeleton_kind_rejects_unknown(tmp_path, body):
+    b = bp.Bvh(("a",), (-1,), np.zeros((1, 3)), (("Xrotation",),), np.full((1, 3), np.nan), 0.1,
+               np.zeros((2, 1)))  # fmt: skip
+    with pytest.raises(ValueError, match="unknown skeleton"):
+        M.skeleton_kind(b)
+    bp.write_bvh(tmp_path / "odd.bvh", b)
+    with pytest.raises(ValueError, match=r"odd\.bvh: unknown skeleton"):
+        load_mocap(tmp_path, progress=False, body=body)
+    with pytest.raises(ValueError, match="neither a file nor a directory"):
+        load_mocap(tmp_path / "missing", progress=False, body=body)
+
+
+# --------------------------------------------------------------------------------------------------
+# loading, resampling, frame rates
+
+
+def test_load_mocap_resamples_and_drops_rest_frame(tmp_path, body):
+    rng = np.random.default_rng(4)
+    bvh = _skeleton(_rig_spec(body), rng, 241)  # MotionBuilder names: frame 0 is the T-pose
+    (tmp_path / "salsa_like").mkdir()
+    (tmp_path / "walks").mkdir()
+    bp.write_bvh(tmp_path / "salsa_like/a.bvh", bvh, precision=17)
+    bp.write_bvh(tmp_path / "walks/b.bvh", bvh, precision=17)
+    short = bp.Bvh(*[getattr(bvh, f) for f in ("joint_names", "parents", "offsets", "channels",
+                     "end_offsets", "frame_time")], bvh.motion[:100])  # fmt: skip
+    bp.write_bvh(tmp_path / "walks/short.bvh", short)  # 99 motion frames = 0.82 s: skipped
+    ps = load_mocap(tmp_path, progress=False, body=body, frame_rates={"salsa": 60.0})
+    assert ps.clip_names == ("salsa_like/a", "walks/b")
+    assert ps.joint_names == POSE_JOINTS and ps.fps == 4.0
+    # 240 motion frames: at 60 fps 239/60 s -> 16 poses; at the header's 120 fps -> 8 poses
+    np.testing.assert_array_equal(ps.poses_per_clip(), [16, 8])
+    want = M._to_euler(M.retarget_matrices(bvh, body, 1 + 15 * np.arange(16)))
+    np.testing.assert_allclose(ps.euler[:16], want, atol=1e-12)
+    want_b = M._to_euler(M.retarget_matrices(bvh, body, 1 + 30 * np.arange(8)))
+    np.testing.assert_allclose(ps.euler[16:], want_b, atol=1e-12)
+    ps2 = load_mocap(tmp_path / "walks/b.bvh", fps=8.0, progress=False, body=body)
+    assert ps2.n_poses == 16 and ps2.fps == 8.0
+    with pytest.raises(ValueError, match="none of the 1 BVH files has enough motion"):
+        load_mocap(tmp_path / "walks/short.bvh", progress=False, body=body)
+    with pytest.raises(ValueError, match="`fps`"):
+        load_mocap(tmp_path, fps=0.0, progress=False, body=body)
+
+
+# --------------------------------------------------------------------------------------------------
+# rig_pose / pose_euler
+
+
+@jax.jit
+def _round_trip(body, e):
+    pose = jax.vmap(lambda x: rig_pose(body, x))(e)
+    back = jax.vmap(lambda p: pose_euler(body, p))(pose)
+    idx = np.array([body.joint_names.index(j) for j in POSE_JOINTS])
+    R = jax.vmap(bp.axis_angle_to_matrix)(pose[0, idx])
+    R_e = jax.vmap(lambda x: bp.euler_to_matrix(x, EULER_ORDER))(e[0])
+    g = jax.grad(lambda x: jnp.sum(rig_pose(body, x) ** 2))(jnp.zeros((20, 3), e.dtype))
+    return pose, back, R, R_e, g
+
+
+def test_rig_pose_round_trip_jit_vmap(body, getkey):
+    n = 5
+    k1, k2 = jax.random.split(getkey())
+    outer = jax.random.uniform(k1, (n, 20, 2), minval=-3.0, maxval=3.0)
+    mid = jax.random.uniform(k2, (n, 20), minval=-1.4, maxval=1.4)
+    e = jnp.stack([outer[..., 0], mid, outer[..., 1]], -1)
+    pose, back, R, R_e, g = _round_trip(body, e)
+    assert pose.shape == (n, body.n_joints, 3)
+    idx = [body.joint_names.index(j) for j in POSE_JOINTS]
+    others = np.setdiff1d(np.arange(body.n_joints), idx)
+    assert np.all(np.asarray(pose)[:, others] == 0)
+    np.testing.assert_allclose(back, e, atol=1e-9)
+    np.testing.assert_allclose(R, R_e, atol=1e-9)  # the rotation of the Euler angles
+    assert np.all(np.isfinite(np.asarray(g)))  # finite gradient at the identity
+    with pytest.raises(ValueError, match=r"`euler` must have shape \(20, 3\)"):
+        rig_pose(body, jnp.zeros((19, 3)))
+    with pytest.raises(ValueError, match=r"must have the cmu_mb rig.*missing \['LeftUpLeg'"):
+        M._pose_index(tuple(n for n in body.joint_names if n != "LeftUpLeg"))
+
+
+# --------------------------------------------------------------------------------------------------
+# split
+
+
+def _poses(counts):
+    clip = np.repeat(np.arange(len(counts)), counts).astype(np.int32)
+    e = np.random.default_rng(0).normal(size=(len(clip), 20, 3))
+    return PoseSet(jnp.asarray(e), jnp.asarray(clip), tuple(f"c{i}" for i in range(len(counts))))
+
+
+def test_split_by_clip_no_clip_in_both():
+    ps = _poses([30, 5, 12, 40, 8, 25, 17, 3, 60, 10])
+    tr, te = split_by_clip(ps, 0.2, seed=0)
+    a, b = set(np.asarray(tr.clip).tolist()), set(np.asarray(te.clip).tolist())
+    assert not a & b and a | b == set(range(10))
+    assert tr.n_poses + te.n_poses == ps.n_poses
+    assert te.n_poses >= 0.2 * ps.n_poses
+    # the test set stops at the first clip that reaches the target fraction
+    assert te.n_poses - min(ps.poses_per_clip()[list(b)]) < 0.2 * ps.n_poses + 60
+    assert tr.clip_names == ps.clip_names and te.joint_names == POSE_JOINTS
+    rows = {tuple(r) for r in np.asarray(te.euler).reshape(te.n_poses, -1).round(12)}
+    assert len(rows) == te.n_poses
+    tr2, te2 = split_by_clip(ps, 0.2, seed=0)
+    np.testing.assert_array_equal(te2.clip, te.clip)
+    splits = {tuple(sorted(set(np.asarray(split_by_clip(ps, 0.2, seed=s)[1].clip).tolist())))
+              for s in range(5)}  # fmt: skip
+    assert len(splits) > 1
+    with pytest.raises(ValueError, match="test_fraction"):
+        split_by_clip(ps, 1.0)
+    with pytest.raises(ValueError, match="at least two non-empty clips"):
+        split_by_clip(_poses([10]), 0.2)
+
+
+# --------------------------------------------------------------------------------------------------
+# real data (skipped when the shared data is absent)
+
+
+@needs_data
+@pytest.mark.parametrize(
+    "rel, frames",
+    [
+        (
+            "cmu_3dsmax-friendly_yuki-koyama-bvh11/131_michael_jackson_styled/131_01.bvh",
+            [0, 400, 900],
+        ),
+        ("cmu_daz-friendly_papagina-acLSTM/salsa_couple/01.bvh", [1, 800, 1600]),
+        ("cmu_daz-friendly_papagina-acLSTM/martial_arts/05.bvh", [1, 1200]),
+        ("cmu_mb_motionbuilder-friendly_una-dinosauria-cmu-mocap/02_06_first3frames.bvh", [1, 2]),
+    ],
+)
+def test_retarget_real_clips_bone_directions(body, rel, frames):
+    bvh = bp.read_bvh(MOCAP / rel)
+    kind = M.skeleton_kind(bvh)
+    table = M._MAPS[M._KIND_INFO[kind][0]]
+    err, checked = _direction_errors(bvh, body, np.array(frames), table)
+    assert len(checked) >= 13
+    assert err.max() < 2.0, dict(zip(checked, err.max(0)))
+
+
+@needs_data
+def test_load_real_clips_frame_rates_and_skips(body):
+    ps = load_mocap(
+        [
+            MOCAP / "cmu_daz-friendly_papagina-acLSTM/salsa_couple/01.bvh",
+            MOCAP / "cmu_3dsmax-friendly_yuki-koyama-bvh11/131_michael_jackson_styled/131_01.bvh",
+            MOCAP / "cmu_daz-friendly_papagina-acLSTM/standard.bvh",
+            MOCAP / "cmu_mb_motionbuilder-friendly_una-dinosauria-cmu-mocap",
+        ],
+        progress=False,
+        body=body,
+    )
+    assert ps.clip_names == ("salsa_couple/01", "131_michael_jackson_styled/131_01")
+    # salsa: 2,242 motion frames at 60 fps (37.4 s); 131_01: 994 frames at 120 fps (8.3 s)
+    np.testing.assert_array_equal(ps.poses_per_clip(), [150, 34])
+    assert np.all(np.isfinite(np.asarray(ps.euler)))
+    # most joints move, and the poses are not all the same
+    assert float(jnp.std(ps.euler, axis=0).mean()) > 0.05
+
+
+# --------------------------------------------------------------------------------------------------
+# pictures
+
+
+def test_render_poses(tmp_path, body):
+    e = np.zeros((2, 20, 3))
+    e[1, POSE_JOINTS.index("LeftArm"), 1] = 1.0
+    img = render_poses(body, e, tmp_path / "p.png", labels=["rest", "arm"], cell_size=(64, 48))
+    assert img.dtype == np.uint8 and img.shape[1] == 96
+    assert (tmp_path / "p.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="`euler`"):
+        render_poses(body, np.zeros((2, 19, 3)), tmp_path / "q.png")
