@@ -1,0 +1,208 @@
+"""Saving DSPP priors and training checkpoints.
+
+Both are one zip file (stored, not compressed) written atomically (`bodyprior.atomic_open`):
+
+- `metadata.json`: format name and version, what is stored (class, kind, network config), array
+  shapes, and the sha256 of the payload;
+- `leaves.eqx`: every array leaf of the PyTree, written by `eqx.tree_serialise_leaves`;
+- checkpoints only: `records.npy`, the per-cycle loss record so far.
+
+Loading rebuilds the PyTree skeleton from the stored config and fills it in, validating format,
+version, checksum and the structure; any mismatch raises `ValueError`. A checkpoint also stores the
+training key and a fingerprint of the (normalised) training data, and is only resumed for the same
+data, key and network sizes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import zipfile
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._io import atomic_open
+from ._nets import DSPPConfig, GeometryGAN, PosePrior, ShapePrior, init_aegan, init_geometry_gan
+
+PRIOR_FORMAT = "bodyprior.dspp.prior"
+CHECKPOINT_FORMAT = "bodyprior.dspp.checkpoint"
+FORMAT_VERSION = 1
+
+_CLASSES = {"ShapePrior": ShapePrior, "PosePrior": PosePrior, "GeometryGAN": GeometryGAN}
+
+
+def _serialise(tree) -> bytes:
+    buf = io.BytesIO()
+    eqx.tree_serialise_leaves(buf, tree)
+    return buf.getvalue()
+
+
+def _deserialise(payload: bytes, like, path: str):
+    try:
+        return eqx.tree_deserialise_leaves(io.BytesIO(payload), like)
+    except Exception as e:  # shape/dtype mismatch or truncated payload
+        raise ValueError(f"{path!r}: stored arrays do not match the expected structure: {e}") from e
+
+
+def _write_zip(path: str, metadata: dict, members: dict[str, bytes]) -> None:
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise ValueError(f"`path`: directory {directory!r} does not exist.")
+    with atomic_open(path, "wb") as f:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+            zf.writestr("metadata.json", json.dumps(metadata, indent=1))
+            for name, data in members.items():
+                zf.writestr(name, data)
+
+
+def _read_zip(path: str, fmt: str, members: tuple[str, ...]) -> tuple[dict, dict[str, bytes]]:
+    if not os.path.isfile(path):
+        raise ValueError(f"`path`: no such file {path!r}.")
+    try:
+        with zipfile.ZipFile(path, "r") as zf:
+            names = set(zf.namelist())
+            if not {"metadata.json", *members} <= names:
+                raise ValueError(f"{path!r} is not a {fmt} file (missing members).")
+            meta = json.loads(zf.read("metadata.json").decode("utf-8"))
+            data = {m: zf.read(m) for m in members}
+    except (zipfile.BadZipFile, OSError, EOFError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path!r} is not a readable {fmt} file: {e}") from e
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise ValueError(f"{path!r}: format must be {fmt!r}, got {got!r}.")
+    if meta.get("version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{path!r}: unsupported {fmt} version {meta.get('version')!r}; this bodyprior reads "
+            f"version {FORMAT_VERSION}."
+        )
+    if hashlib.sha256(data["leaves.eqx"]).hexdigest() != meta.get("leaves_sha256"):
+        raise ValueError(f"{path!r}: checksum mismatch, the array data are corrupted.")
+    return meta, data
+
+
+def _skeleton(cls_name: str, kind: str, item_shape, config: DSPPConfig):
+    mean = jnp.zeros(tuple(item_shape), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    if cls_name == "GeometryGAN":
+        return init_geometry_gan(kind, mean, 1.0, config, key)
+    return init_aegan(kind, mean, 1.0, config, key)
+
+
+# --------------------------------------------------------------------------------------------------
+# Priors
+
+
+def save_prior(path: str | os.PathLike, prior: ShapePrior | PosePrior | GeometryGAN) -> None:
+    """Writes a trained prior ([`bodyprior.dspp.ShapePrior`][], [`bodyprior.dspp.PosePrior`][] or
+    [`bodyprior.dspp.GeometryGAN`][]) to `path` atomically (format `bodyprior.dspp.prior` v1)."""
+    cls_name = type(prior).__name__
+    if cls_name not in _CLASSES or not isinstance(prior, _CLASSES[cls_name]):
+        raise ValueError(
+            f"`prior` must be a ShapePrior, PosePrior or GeometryGAN, got {type(prior).__name__}."
+        )
+    kind = prior.kind if isinstance(prior, GeometryGAN) else (
+        "shape" if isinstance(prior, ShapePrior) else "pose"
+    )  # fmt: skip
+    payload = _serialise(prior)
+    meta = {
+        "format": PRIOR_FORMAT,
+        "version": FORMAT_VERSION,
+        "class": cls_name,
+        "kind": kind,
+        "item_shape": list(prior.mean.shape),
+        "config": prior.config.to_dict(),
+        "leaves_sha256": hashlib.sha256(payload).hexdigest(),
+    }
+    _write_zip(os.fspath(path), meta, {"leaves.eqx": payload})
+
+
+def load_prior(path: str | os.PathLike) -> ShapePrior | PosePrior | GeometryGAN:
+    """Reads a prior written by [`bodyprior.dspp.save_prior`][], validating it.
+
+    **Raises:** `ValueError` if the file is missing, of another format/version, or corrupted."""
+    path = os.fspath(path)
+    meta, data = _read_zip(path, PRIOR_FORMAT, ("leaves.eqx",))
+    cls_name, kind = meta.get("class"), meta.get("kind")
+    if cls_name not in _CLASSES or kind not in ("shape", "pose"):
+        raise ValueError(f"{path!r}: unknown class/kind {cls_name!r}/{kind!r}.")
+    try:
+        config = DSPPConfig.from_dict(meta.get("config"))
+        item_shape = tuple(int(s) for s in meta.get("item_shape"))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path!r}: invalid metadata: {e}") from e
+    return _deserialise(data["leaves.eqx"], _skeleton(cls_name, kind, item_shape, config), path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Training checkpoints
+
+
+def _resume_config(cfg: DSPPConfig) -> dict:
+    # Everything that changes the computation; `n_steps` may grow between runs.
+    d = cfg.to_dict()
+    d.pop("n_steps")
+    return d
+
+
+def _fingerprint(u: np.ndarray) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(u).view(np.uint8))
+    h.update(repr(u.shape).encode())
+    return h.hexdigest()
+
+
+def checkpoint_path(checkpoint_dir, tag: str) -> str:
+    return os.path.join(os.fspath(checkpoint_dir), f"{tag}.ckpt")
+
+
+def save_checkpoint(checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records) -> None:
+    payload = _serialise(ts)
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(records, np.float32), allow_pickle=False)
+    meta = {
+        "format": CHECKPOINT_FORMAT,
+        "version": FORMAT_VERSION,
+        "tag": tag,
+        "step": int(ts.step),
+        "config": _resume_config(cfg),
+        "key": [int(k) for k in np.asarray(key)],
+        "data_sha256": _fingerprint(u),
+        "leaves_sha256": hashlib.sha256(payload).hexdigest(),
+    }
+    _write_zip(checkpoint_path(checkpoint_dir, tag), meta, {"leaves.eqx": payload,
+                                                            "records.npy": buf.getvalue()})  # fmt: skip
+
+
+def load_checkpoint(checkpoint_dir, tag, like, cfg: DSPPConfig, key, u):
+    """Returns `(train_state, records)` from `checkpoint_dir/<tag>.ckpt`, or `None` if there is no
+    checkpoint. Raises `ValueError` if it belongs to another run (data, key, sizes) or is corrupt."""
+    d = os.fspath(checkpoint_dir)
+    if not os.path.isdir(d):
+        raise ValueError(f"`checkpoint_dir`: no such directory {d!r}.")
+    path = checkpoint_path(d, tag)
+    if not os.path.exists(path):
+        return None
+    meta, data = _read_zip(path, CHECKPOINT_FORMAT, ("leaves.eqx", "records.npy"))
+    if meta.get("tag") != tag:
+        raise ValueError(f"{path!r}: checkpoint of {meta.get('tag')!r}, expected {tag!r}.")
+    if meta.get("config") != _resume_config(cfg):
+        raise ValueError(
+            f"{path!r}: the checkpoint was written with another config {meta.get('config')}; "
+            "use a fresh `checkpoint_dir` or the same config."
+        )
+    if meta.get("key") != [int(k) for k in np.asarray(key)]:
+        raise ValueError(f"{path!r}: the checkpoint was written with another `key`.")
+    if meta.get("data_sha256") != _fingerprint(u):
+        raise ValueError(f"{path!r}: the checkpoint was written for other training data.")
+    ts = _deserialise(data["leaves.eqx"], like, path)
+    try:
+        records = np.load(io.BytesIO(data["records.npy"]), allow_pickle=False)
+    except ValueError as e:
+        raise ValueError(f"{path!r}: records.npy is corrupted: {e}") from e
+    if records.shape != (int(ts.step), 5) or int(ts.step) != meta.get("step"):
+        raise ValueError(f"{path!r}: step count and loss record disagree.")
+    return ts, records

@@ -1,0 +1,418 @@
+"""Training DSPP priors (paper §3.3) and the geometry-space GAN baselines.
+
+One training cycle, as the paper: (1) an auto-encoder step on a random real sample (eq. 1 / 2,
+squared Frobenius reconstruction error); (2) a discriminator step on the *updated* encoder's codes of
+those samples against generated codes; (3) a generator step against the *updated* discriminator with
+the non-saturating loss `-E log D(G(n))` (eqs. 3-4). Three Adam optimisers with default settings
+(lr 1e-3, betas 0.9/0.999, eps 1e-8; optax). The geometry baselines skip (1) and discriminate
+geometry instead of codes.
+
+The whole cycle is one pure function; `steps_per_call` cycles run in one jitted `lax.scan`; progress
+(tqdm) and checkpoints happen between calls. Everything is a deterministic function of the key, and the
+call boundaries are a fixed function of the step (multiples of `steps_per_call` and of
+`checkpoint_every`), so a run resumed from a checkpoint performs exactly the same jitted calls on the
+same state as an uninterrupted one and ends with bitwise-identical parameters.
+
+Networks run in float32 whatever `jax_enable_x64` says; data are normalised on the host in float64
+(`(x - mean) / scale`, with `scale` the RMS coordinate deviation of the training set).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optax
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from .._validate import check_array
+from ._nets import DSPPConfig, GeometryGAN, PosePrior, ShapePrior, init_aegan, init_geometry_gan
+
+__all__ = ["TrainLog", "train_shape_prior", "train_pose_prior", "train_geometry_gan"]
+
+# Columns of the per-step record.
+_COLUMNS = ("ae_loss", "d_loss", "g_loss", "d_real", "d_fake")
+
+
+class TrainLog(eqx.Module):
+    """Per-cycle training record (host NumPy arrays, one entry per cycle).
+
+    **Fields:**
+
+    - `ae_loss`: reconstruction loss, eq. (1)/(2): squared Frobenius norm per sample (m² for shapes,
+      rad² for poses), batch mean; shape `(S,)` (NaN for the geometry baselines, which have no AE).
+    - `d_loss`: discriminator loss `-log D(real) - log(1 - D(fake))`, batch means, `(S,)`.
+    - `g_loss`: non-saturating generator loss `-log D(G(n))`, `(S,)`.
+    - `d_real`, `d_fake`: mean discriminator probabilities on the real and generated batch, `(S,)`.
+    - `wall_time_s`: seconds spent training in this call (excluding time restored from a checkpoint).
+    - `finite`: whether every recorded loss is finite.
+    """
+
+    ae_loss: np.ndarray
+    d_loss: np.ndarray
+    g_loss: np.ndarray
+    d_real: np.ndarray
+    d_fake: np.ndarray
+    wall_time_s: float = eqx.field(static=True)
+    finite: bool = eqx.field(static=True)
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.d_loss.shape[0])
+
+    @staticmethod
+    def from_records(records: np.ndarray, wall_time_s: float) -> TrainLog:
+        cols = [np.asarray(records[:, i], np.float64) for i in range(len(_COLUMNS))]
+        finite = bool(np.all(np.isfinite(records[:, 1:])) and np.all(~np.isinf(records[:, 0])))
+        return TrainLog(*cols, wall_time_s=float(wall_time_s), finite=finite)
+
+
+class _TrainState(eqx.Module):
+    model: ShapePrior | PosePrior | GeometryGAN
+    opt_ae: optax.OptState | None
+    opt_d: optax.OptState
+    opt_g: optax.OptState
+    key: Array
+    step: Array
+
+
+def _adam(cfg: DSPPConfig) -> optax.GradientTransformation:
+    return optax.adam(cfg.learning_rate)
+
+
+def _params(tree):
+    return eqx.filter(tree, eqx.is_inexact_array)
+
+
+def _vmap_disc(disc, state, inference):
+    # One power iteration per call, whatever the batch size: the SN state does not depend on the
+    # input, so it leaves the vmap unbatched.
+    return jax.vmap(lambda x: disc(x, state, inference=inference), out_axes=(0, None))
+
+
+def _d_loss(disc, state, real_in, fake_in):
+    logits, state = _vmap_disc(disc, state, False)(jnp.concatenate([real_in, fake_in]))
+    b = real_in.shape[0]
+    lr, lf = logits[:b], logits[b:]
+    loss = -jnp.mean(jax.nn.log_sigmoid(lr)) - jnp.mean(jax.nn.log_sigmoid(-lf))
+    return loss, (state, jnp.mean(jax.nn.sigmoid(lr)), jnp.mean(jax.nn.sigmoid(lf)))
+
+
+def _aegan_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig):
+    m = ts.model
+    adam = _adam(cfg)
+    key, k_idx, k_d, k_g = jr.split(ts.key, 4)
+    b = cfg.batch_size
+    x = data[jr.randint(k_idx, (b,), 0, data.shape[0])]
+
+    # (1) auto-encoder step on real samples
+    def ae_loss(ed):
+        enc, dec = ed
+        xr = jax.vmap(lambda u: dec(enc(u)))(x)
+        return jnp.mean(jnp.sum((xr - x) ** 2, axis=-1))
+
+    l_ae, g = eqx.filter_value_and_grad(ae_loss)((m.encoder, m.decoder))
+    upd, opt_ae = adam.update(g, ts.opt_ae)
+    enc, dec = eqx.apply_updates((m.encoder, m.decoder), upd)
+
+    # (2) discriminator step: updated embeddings vs generated codes
+    z_real = jax.lax.stop_gradient(jax.vmap(enc)(x))
+    noise = jr.normal(k_d, (b, cfg.noise_dim), x.dtype)
+    z_fake = jax.lax.stop_gradient(jax.vmap(m.generator)(noise))
+    (l_d, (state, p_real, p_fake)), g = eqx.filter_value_and_grad(_d_loss, has_aux=True)(
+        m.discriminator, m.disc_state, z_real, z_fake
+    )
+    upd, opt_d = adam.update(g, ts.opt_d)
+    disc = eqx.apply_updates(m.discriminator, upd)
+
+    # (3) generator step against the updated discriminator (its SN state frozen for this step)
+    noise = jr.normal(k_g, (b, cfg.noise_dim), x.dtype)
+
+    def g_loss(gen):
+        logits, _ = _vmap_disc(disc, state, True)(jax.vmap(gen)(noise))
+        return -jnp.mean(jax.nn.log_sigmoid(logits))
+
+    l_g, g = eqx.filter_value_and_grad(g_loss)(m.generator)
+    upd, opt_g = adam.update(g, ts.opt_g)
+    gen = eqx.apply_updates(m.generator, upd)
+
+    # dataclasses.replace, not tree_at: the old SN state object is spent and must not be flattened.
+    m = dataclasses.replace(
+        m, encoder=enc, decoder=dec, generator=gen, discriminator=disc, disc_state=state
+    )
+    rec = jnp.stack([l_ae * m.scale**2, l_d, l_g, p_real, p_fake]).astype(jnp.float32)
+    return _TrainState(m, opt_ae, opt_d, opt_g, key, ts.step + 1), rec
+
+
+def _geometry_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig):
+    m = ts.model
+    adam = _adam(cfg)
+    key, k_idx, k_d, k_g = jr.split(ts.key, 4)
+    b = cfg.batch_size
+    x = data[jr.randint(k_idx, (b,), 0, data.shape[0])]
+    to_disc = jax.vmap(m._disc_input)
+
+    noise = jr.normal(k_d, (b, cfg.noise_dim), x.dtype)
+    u_fake = jax.lax.stop_gradient(jax.vmap(m.generator)(noise))
+    (l_d, (state, p_real, p_fake)), g = eqx.filter_value_and_grad(_d_loss, has_aux=True)(
+        m.discriminator, m.disc_state, to_disc(x), to_disc(u_fake)
+    )
+    upd, opt_d = adam.update(g, ts.opt_d)
+    disc = eqx.apply_updates(m.discriminator, upd)
+
+    noise = jr.normal(k_g, (b, cfg.noise_dim), x.dtype)
+
+    def g_loss(gen):
+        logits, _ = _vmap_disc(disc, state, True)(to_disc(jax.vmap(gen)(noise)))
+        return -jnp.mean(jax.nn.log_sigmoid(logits))
+
+    l_g, g = eqx.filter_value_and_grad(g_loss)(m.generator)
+    upd, opt_g = adam.update(g, ts.opt_g)
+    gen = eqx.apply_updates(m.generator, upd)
+
+    m = dataclasses.replace(m, generator=gen, discriminator=disc, disc_state=state)
+    nan = jnp.full((), jnp.nan, jnp.float32)
+    rec = jnp.stack([nan, l_d, l_g, p_real, p_fake]).astype(jnp.float32)
+    return _TrainState(m, None, opt_d, opt_g, key, ts.step + 1), rec
+
+
+@eqx.filter_jit
+def _run_chunk(ts: _TrainState, data, n: int, cfg: DSPPConfig, cycle):
+    def body(carry, _):
+        return cycle(carry, data, cfg)
+
+    return jax.lax.scan(body, ts, None, length=n)
+
+
+def _raw_key(key) -> Array:
+    key = jnp.asarray(key) if not isinstance(key, jax.Array) else key
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jr.key_data(key)
+    if key.shape != (2,) or key.dtype != jnp.uint32:
+        raise ValueError(
+            f"`key` must be a jax.random key (PRNGKey: uint32 shape (2,)), got {key.dtype} {key.shape}."
+        )
+    return key
+
+
+def _init_state(kind: str, model_kind: str, mean, scale, cfg: DSPPConfig, key) -> _TrainState:
+    k_init, k_train = jr.split(key)
+    if model_kind == "aegan":
+        model = init_aegan(kind, mean, scale, cfg, k_init)
+    else:
+        model = init_geometry_gan(kind, mean, scale, cfg, k_init)
+    adam = _adam(cfg)
+    opt_ae = adam.init(_params((model.encoder, model.decoder))) if model_kind == "aegan" else None
+    return _TrainState(
+        model, opt_ae, adam.init(_params(model.discriminator)), adam.init(_params(model.generator)),
+        k_train, jnp.zeros((), jnp.int32),
+    )  # fmt: skip
+
+
+def _prepare(data, name: str, item_shape: tuple) -> tuple[np.ndarray, np.ndarray, float]:
+    check_array(data, name, (None, *item_shape))
+    x = np.asarray(data, np.float64)
+    if x.shape[0] < 2:
+        raise ValueError(f"`{name}` must hold at least 2 samples, got {x.shape[0]}.")
+    mean = x.mean(0)
+    scale = float(np.sqrt(np.mean((x - mean) ** 2)))
+    if not scale > 0:
+        raise ValueError(f"`{name}`: all samples are identical; nothing to learn.")
+    u = ((x - mean) / scale).reshape(x.shape[0], -1).astype(np.float32)
+    return u, mean, scale
+
+
+def _train(
+    data, kind: str, model_kind: str, *, key, config, checkpoint_dir, progress, throw, name: str
+):
+    from ._checkpoint import load_checkpoint, save_checkpoint  # circular-free lazy import
+
+    if not isinstance(config, DSPPConfig):
+        raise ValueError(f"`config` must be a DSPPConfig, got {type(config).__name__}.")
+    key = _raw_key(key)
+    item_shape = (None, 3) if kind == "shape" else (20, 3)
+    u, mean, scale = _prepare(data, name, item_shape)
+    cfg = config
+    ts = _init_state(kind, model_kind, mean, scale, cfg, key)
+    records = np.zeros((0, len(_COLUMNS)), np.float32)
+    tag = f"{model_kind}_{kind}"
+    if checkpoint_dir is not None:
+        restored = load_checkpoint(checkpoint_dir, tag, ts, cfg, key, u)
+        if restored is not None:
+            ts, records = restored
+    u_dev = jnp.asarray(u)
+    step = int(ts.step)
+    if step > cfg.n_steps:
+        raise ValueError(
+            f"The checkpoint in {checkpoint_dir!r} is at step {step}, beyond `n_steps` {cfg.n_steps}."
+        )
+    every = max(
+        cfg.steps_per_call, (cfg.checkpoint_every // cfg.steps_per_call) * cfg.steps_per_call
+    )
+    cycle = _aegan_cycle if model_kind == "aegan" else _geometry_cycle
+    chunks = [records]
+    t0 = time.perf_counter()
+    with tqdm(total=cfg.n_steps, initial=step, desc=f"training {tag}", disable=not progress,
+              unit="step") as bar:  # fmt: skip
+        while step < cfg.n_steps:
+            # Call boundaries depend on the step only, never on where a run was interrupted.
+            n = min(cfg.steps_per_call - step % cfg.steps_per_call, every - step % every,
+                    cfg.n_steps - step)  # fmt: skip
+            ts, rec = _run_chunk(ts, u_dev, n, cfg, cycle)
+            rec = np.asarray(rec)
+            chunks.append(rec)
+            step += n
+            bar.update(n)
+            if progress:
+                bar.set_postfix(
+                    {k: f"{v:.3g}" for k, v in zip(_COLUMNS[:3], rec[-min(n, 100):].mean(0))
+                     if model_kind == "aegan" or k != "ae_loss"}
+                )  # fmt: skip
+            bad = not np.all(np.isfinite(rec[:, 1:])) or (
+                model_kind == "aegan" and not np.all(np.isfinite(rec[:, 0]))
+            )
+            if bad:
+                if throw:
+                    raise RuntimeError(
+                        f"training {tag}: non-finite loss in steps {step - n}..{step}; "
+                        "lower `learning_rate` or check the data."
+                    )
+                break
+            if checkpoint_dir is not None and (step % every == 0 or step == cfg.n_steps):
+                save_checkpoint(checkpoint_dir, tag, ts, cfg, key, u, np.concatenate(chunks))
+    log = TrainLog.from_records(np.concatenate(chunks), time.perf_counter() - t0)
+    return ts.model, log
+
+
+def train_shape_prior(
+    data: Float[Array, "N V 3"],
+    *,
+    key,
+    config: DSPPConfig = DSPPConfig(),
+    checkpoint_dir=None,
+    progress: bool = True,
+    throw: bool = True,
+) -> tuple[ShapePrior, TrainLog]:
+    """Trains a DSPP shape prior (shape auto-encoder + GAN in its latent space).
+
+    **Arguments:**
+
+    - `data`: training shapes `(N, V, 3)` in vertex correspondence, metres (e.g. a population on the
+      decimated topology, `pop.vertices[:, vertex_map]`).
+    - `key`: a `jax.random` key; the result is a deterministic function of it, `data` and `config`.
+    - `config`: a [`bodyprior.dspp.DSPPConfig`][] (sizes, `n_steps`, `batch_size`, ...).
+    - `checkpoint_dir`: optional existing directory. A checkpoint `aegan_shape.ckpt` is written
+      atomically every `config.checkpoint_every` cycles and at the end; if one is there (same
+      data, key and network sizes), training resumes from it. `n_steps` may be raised to continue.
+    - `progress`: show a tqdm progress bar.
+    - `throw`: raise `RuntimeError` on a non-finite loss; with `False` training stops there and the
+      log says `finite=False`.
+
+    **Returns:** `(prior, log)`: the [`bodyprior.dspp.ShapePrior`][] and a
+    [`bodyprior.dspp.TrainLog`][].
+    """
+    return _train(data, "shape", "aegan", key=key, config=config, checkpoint_dir=checkpoint_dir,
+                  progress=progress, throw=throw, name="data")  # fmt: skip
+
+
+def train_pose_prior(
+    data: Float[Array, "N 20 3"],
+    *,
+    key,
+    config: DSPPConfig = DSPPConfig(),
+    checkpoint_dir=None,
+    progress: bool = True,
+    throw: bool = True,
+) -> tuple[PosePrior, TrainLog]:
+    """Trains a DSPP pose prior on Euler angles `(N, 20, 3)` (radians, `EULER_ORDER`, joints
+    `POSE_JOINTS`, e.g. `PoseSet.euler`). Arguments and checkpointing (`aegan_pose.ckpt`) as
+    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** `(PosePrior, TrainLog)`."""
+    return _train(data, "pose", "aegan", key=key, config=config, checkpoint_dir=checkpoint_dir,
+                  progress=progress, throw=throw, name="data")  # fmt: skip
+
+
+def train_geometry_gan(
+    data,
+    *,
+    kind: str,
+    key,
+    config: DSPPConfig = DSPPConfig(),
+    checkpoint_dir=None,
+    progress: bool = True,
+    throw: bool = True,
+) -> tuple[GeometryGAN, TrainLog]:
+    """Trains the geometry-space GAN baseline (paper Fig. 4): a generator that outputs geometry,
+    against a discriminator on the geometry (PointNet for `kind="shape"`, data `(N, V, 3)`; MLP on
+    Euler angles for `kind="pose"`, data `(N, 20, 3)`). Same cycle minus the auto-encoder step;
+    other arguments and checkpointing (`geomgan_<kind>.ckpt`) as
+    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** `(GeometryGAN, TrainLog)`
+    (`log.ae_loss` is NaN)."""
+    if kind not in ("shape", "pose"):
+        raise ValueError(f"`kind` must be 'shape' or 'pose', got {kind!r}.")
+    return _train(data, kind, "geomgan", key=key, config=config, checkpoint_dir=checkpoint_dir,
+                  progress=progress, throw=throw, name="data")  # fmt: skip
+
+
+def plot_train_log(log: TrainLog, path, *, title: str = "", smooth: int = 0) -> None:
+    """Saves the loss curves of one training run as a PNG (paper Figs. 5-6): the reconstruction loss
+    (log scale, when there is one) and the discriminator / generator losses against the cycle.
+    `smooth`: moving-average window (0 = about 1% of the run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from .._io import atomic_write_bytes
+
+    if not isinstance(log, TrainLog):
+        raise ValueError(f"`log` must be a TrainLog, got {type(log).__name__}.")
+    s = log.n_steps
+    if s == 0:
+        raise ValueError("`log` is empty (0 steps).")
+    w = int(smooth) if smooth else max(1, s // 100)
+    steps = np.arange(1, s + 1)
+
+    def ma(y):
+        if w <= 1:
+            return y
+        c = np.cumsum(np.insert(np.nan_to_num(y), 0, 0.0))
+        out = (c[w:] - c[:-w]) / w
+        return np.concatenate([np.full(w - 1, np.nan), out])
+
+    has_ae = bool(np.any(np.isfinite(log.ae_loss)))
+    fig, axes = plt.subplots(1, 2 if has_ae else 1, figsize=(9 if has_ae else 5, 3.2), dpi=90,
+                             squeeze=False)  # fmt: skip
+    axes = axes[0]
+    if has_ae:
+        ax = axes[0]
+        ax.plot(steps, log.ae_loss, color="0.8", lw=0.5)
+        ax.plot(steps, ma(log.ae_loss), color="C0", lw=1.2)
+        ax.set_yscale("log")
+        ax.set_xlabel("training cycle")
+        ax.set_ylabel("reconstruction loss (eq. 1/2)")
+        ax.set_title("encoder / decoder")
+    ax = axes[-1]
+    for y, c, lab in ((log.d_loss, "C3", "discriminator"), (log.g_loss, "C2", "generator")):
+        ax.plot(steps, y, color=c, lw=0.3, alpha=0.25)
+        ax.plot(steps, ma(y), color=c, lw=1.2, label=lab)
+    ax.axhline(2 * np.log(2), color="0.5", lw=0.6, ls="--")
+    ax.axhline(np.log(2), color="0.5", lw=0.6, ls=":")
+    ax.set_xlabel("training cycle")
+    ax.set_ylabel("GAN loss (nats)")
+    ax.set_title("discriminator / generator")
+    ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
