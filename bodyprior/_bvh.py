@@ -165,32 +165,40 @@ class Bvh:
             out[:, [j for j, _ in members]] = R
         return out
 
-    def local_translations(self) -> np.ndarray:
+    def local_translations(self, frames=None) -> np.ndarray:
         """Per-frame translation of every joint relative to its parent, shape `(F, J, 3)`.
 
         `offset` plus the joint's position channels, each expressed in the frame reached by the
         channels written before it (for the usual `Xposition Yposition Zposition` first, simply
         `offset + (x, y, z)`).
+
+        **Arguments:**
+
+        - `frames`: optional frame indices (or slice) to evaluate, default all frames.
         """
-        F, J = self.n_frames, self.n_joints
+        motion = self.motion if frames is None else self.motion[frames]
+        F, J = motion.shape[0], self.n_joints
         out = np.broadcast_to(self.offsets, (F, J, 3)).copy()
         starts = self.channel_start
         for j, chans in enumerate(self.channels):
-            if not any(c.endswith("position") for c in chans):
+            is_pos = [c.endswith("position") for c in chans]
+            if not any(is_pos):
                 continue
+            last = max(k for k, p in enumerate(is_pos) if p)
             R = np.broadcast_to(np.eye(3), (F, 3, 3))
-            for k, c in enumerate(chans):
-                v = self.motion[:, starts[j] + k]
-                axis = "XYZ".index(c[0])
-                if c.endswith("position"):
-                    out[:, j] += R[:, :, axis] * v[:, None]
+            for k, c in enumerate(
+                chans[: last + 1]
+            ):  # rotations after the last position: no effect
+                v = motion[:, starts[j] + k]
+                if is_pos[k]:
+                    out[:, j] += R[:, :, "XYZ".index(c[0])] * v[:, None]
                 else:
                     R = R @ _rotation_product(np.deg2rad(v[:, None]), c[0])
         return out
 
-    def root_positions(self) -> np.ndarray:
-        """Root joint position per frame, shape `(F, 3)`, file units."""
-        return self.local_translations()[:, 0]
+    def root_positions(self, frames=None) -> np.ndarray:
+        """Root joint position per frame, shape `(F, 3)`, file units (optional frame indices)."""
+        return self.local_translations(frames)[:, 0]
 
     def with_frame_time(self, frame_time: float) -> Bvh:
         """A copy with another `frame_time` (seconds), e.g. when the header is known to be wrong."""

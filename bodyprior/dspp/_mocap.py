@@ -364,8 +364,14 @@ class _Retarget:
     C_root: np.ndarray
 
 
+_RIG_REST_CACHE: dict[int, tuple] = {}
+
+
 def _rig_rest(body: DefaultBody) -> tuple[np.ndarray, np.ndarray]:
-    """Rest heads and tails of the default body (default phenotypes), float64, metres."""
+    """Rest heads and tails of the default body (default phenotypes), float64, metres (cached)."""
+    hit = _RIG_REST_CACHE.get(id(body))
+    if hit is not None and hit[0] is body:
+        return hit[1], hit[2]
     with jax.enable_x64(True):
         _, heads = rest_shape(body, phenotype_vector())
         heads = np.asarray(heads, np.float64)
@@ -373,6 +379,9 @@ def _rig_rest(body: DefaultBody) -> tuple[np.ndarray, np.ndarray]:
         tails = np.asarray(body.rig.tail_template, np.float64) + (
             heads - np.asarray(body.rig.head_template, np.float64)
         )
+    if len(_RIG_REST_CACHE) >= 4:
+        _RIG_REST_CACHE.clear()
+    _RIG_REST_CACHE[id(body)] = (body, heads, tails)
     return heads, tails
 
 
