@@ -680,6 +680,16 @@ def render_poses(
     - `labels`, `ncols`, `view`, `cell_size`: as [`bodyprior.contact_sheet`][].
 
     **Returns:** the image, `uint8` of shape `(H, W, 3)`.
+
+    !!! example
+
+        `docs/img/mocap_poses.png` (5 evenly spaced poses of CMU 131_01, salsa 01 and martial 05):
+
+        ```python
+        ps = load_mocap(mocap / "cmu_daz-friendly_papagina-acLSTM/salsa_couple/01.bvh")
+        idx = np.linspace(4, ps.n_poses - 3, 5).round().astype(int)
+        render_poses(body, np.asarray(ps.euler)[idx], "salsa.png", ncols=5, cell_size=(240, 170))
+        ```
     """
     check_array(euler, "euler", (None, len(POSE_JOINTS), 3))
     phen = jnp.asarray(phenotype_vector(), body.template.dtype)
