@@ -282,6 +282,14 @@ def test_load_mocap_resamples_and_drops_rest_frame(tmp_path, body):
         load_mocap(tmp_path, fps=0.0, progress=False, body=body)
 
 
+def test_plausible_drops_flipped_heads():
+    R = np.broadcast_to(np.eye(3), (3, 20, 3, 3)).copy()
+    flip = np.diag([-1.0, -1.0, 1.0])  # 180 degrees about Z
+    R[1, POSE_JOINTS.index("Head")] = flip
+    R[2, POSE_JOINTS.index("LeftArm")] = flip  # limbs are not bounded
+    np.testing.assert_array_equal(M.plausible(R), [True, False, True])
+
+
 # --------------------------------------------------------------------------------------------------
 # rig_pose / pose_euler
 
@@ -378,19 +386,27 @@ def test_retarget_real_clips_bone_directions(body, rel, frames):
 
 @needs_data
 def test_load_real_clips_frame_rates_and_skips(body):
+    info = {}
     ps = load_mocap(
         [
             MOCAP / "cmu_daz-friendly_papagina-acLSTM/salsa_couple/01.bvh",
             MOCAP / "cmu_3dsmax-friendly_yuki-koyama-bvh11/131_michael_jackson_styled/131_01.bvh",
+            MOCAP / "cmu_daz-friendly_papagina-acLSTM/salsa_couple/06.bvh",
             MOCAP / "cmu_daz-friendly_papagina-acLSTM/standard.bvh",
             MOCAP / "cmu_mb_motionbuilder-friendly_una-dinosauria-cmu-mocap",
         ],
         progress=False,
         body=body,
+        info=info,
     )
     assert ps.clip_names == ("salsa_couple/01", "131_michael_jackson_styled/131_01")
-    # salsa: 2,242 motion frames at 60 fps (37.4 s); 131_01: 994 frames at 120 fps (8.3 s)
-    np.testing.assert_array_equal(ps.poses_per_clip(), [150, 34])
+    # salsa: 2,235 motion frames (after rest + blend) at 60 fps = 37.2 s; 131_01: 994 frames at
+    # 120 fps = 8.3 s
+    np.testing.assert_array_equal(ps.poses_per_clip(), [149, 34])
+    stats = {Path(k).name: v for k, v in info.items()}
+    assert stats["01.bvh"]["source_fps"] == 60.0 and stats["131_01.bvh"]["source_fps"] == 120.0
+    assert stats["06.bvh"]["poses"] == 0 and stats["06.bvh"]["dropped"] == 118  # upside-down head
+    assert stats["standard.bvh"]["skipped"] and stats["02_06_first3frames.bvh"]["skipped"]
     assert np.all(np.isfinite(np.asarray(ps.euler)))
     # most joints move, and the poses are not all the same
     assert float(jnp.std(ps.euler, axis=0).mean()) > 0.05

@@ -55,10 +55,19 @@ hand. Dropped (no data): CMU `LeftHandIndex1`, `LThumb`; Daz fingers, thumbs and
 3ds-Max-named CMU files are renamed to MotionBuilder names first (`_MAX_TO_MB`, from
 shared/data/mocap/SOURCES.md).
 
-**Frames.** The first frame of MotionBuilder-named CMU files (a synthetic T-pose added by the
-conversion) and of Daz-friendly files (a fixed rest pose) is dropped; 3ds-Max files start with
+**Frames.** Dropped at the start of a clip: frame 0 of MotionBuilder-named CMU files (a synthetic
+T-pose added by the conversion); frames 0-7 of Daz-friendly files (the fixed rest pose and a 7-frame
+blend from it into the motion: in all 43 acLSTM files the largest per-frame joint-angle change is
+14-153 degrees over frames 0-8 and at most 8 degrees from frame 8 to 9). 3ds-Max files start with
 motion. Clips are resampled by nearest frame at `fps` (4 in the paper) using the true capture rate
 (`frame_rates`: the acLSTM readme gives salsa 60 fps although the headers say 120).
+
+**Corrupt frames.** Poses whose local rotation angle exceeds `_MAX_LOCAL_DEG` at the head, neck or
+spine (100 degrees for Head/Neck/Neck1, 120 for LowerBack/Spine/Spine1) are dropped. In the shared
+set these are data glitches: the head of CMU 60_06 and of the second half of 60_07 (salsa 06, 07)
+is flipped upside down (150-180 degrees, while no other clip exceeds 90), and single frames bend
+the lower back by up to 151 degrees (salsa 09). At 4 fps this drops 118 poses of salsa 06 (all)
+and 54 of salsa 07.
 """
 
 from __future__ import annotations
@@ -198,7 +207,11 @@ _KIND_SIGNATURE = {
     "daz": ("hip", "abdomen", "chest", "lButtock", "lThigh", "lCollar", "lMid1", "rMid1"),
 }
 # kind -> (joint map, index of the first motion frame)
-_KIND_INFO = {"cmu_mb": ("cmu", 1), "cmu_3dsmax": ("cmu", 0), "daz": ("daz", 1)}
+_KIND_INFO = {"cmu_mb": ("cmu", 1), "cmu_3dsmax": ("cmu", 0), "daz": ("daz", 8)}
+
+# largest plausible local rotation angle (degrees) per pose bone; larger ones are data glitches
+_MAX_LOCAL_DEG = {"Head": 100.0, "Neck": 100.0, "Neck1": 100.0,
+                  "LowerBack": 120.0, "Spine": 120.0, "Spine1": 120.0}  # fmt: skip
 
 #: Default true capture rates (frames per second) by a directory-name substring: the acLSTM
 #: readme.txt gives salsa 60 (indian and martial 120, as their headers say).
@@ -542,11 +555,21 @@ def motion_frames(
     return start + np.minimum(np.rint(times * source_fps).astype(np.int64), n - 1)
 
 
+def plausible(R: np.ndarray) -> np.ndarray:
+    """Which poses (local rotations `(F, 20, 3, 3)`) respect `_MAX_LOCAL_DEG`, shape `(F,)` bool."""
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    angle = np.degrees(np.arccos(cos))  # (F, 20)
+    limit = np.array([_MAX_LOCAL_DEG.get(n, 180.0) for n in POSE_JOINTS])
+    return np.all(angle <= limit, axis=-1)
+
+
 def _source_fps(path: Path, bvh: Bvh, frame_rates: Mapping[str, float]) -> float:
     for key, rate in frame_rates.items():
         if any(key in part for part in path.parent.parts):
             return float(rate)
-    return 1.0 / bvh.frame_time
+    rate = 1.0 / bvh.frame_time
+    # headers hold rounded frame times (".0083333" = 120 fps): snap to a whole rate within 0.01%
+    return float(round(rate)) if abs(rate - round(rate)) < 1e-4 * rate else rate
 
 
 def load_mocap(
@@ -557,6 +580,8 @@ def load_mocap(
     body: DefaultBody | None = None,
     frame_rates: Mapping[str, float] | None = None,
     min_duration: float = 1.0,
+    drop_implausible: bool = True,
+    info: dict | None = None,
 ) -> PoseSet:
     """Loads CMU BVH clips, retargets them to the `cmu_mb` rig and samples poses at `fps`.
 
@@ -575,6 +600,10 @@ def load_mocap(
     - `frame_rates`: true capture rates by directory-name substring, overriding the BVH header;
       default [`bodyprior.dspp._mocap.DEFAULT_FRAME_RATES`][] (`{"salsa": 60.0}`).
     - `min_duration`: seconds of motion below which a file is skipped.
+    - `drop_implausible`: drop poses with impossible head/neck/spine rotations (corrupt frames, see
+      the module docstring).
+    - `info`: optional dict, filled with one entry per file (`str(path)` -> dict with `kind`,
+      `frames`, `source_fps`, `poses`, `dropped`, `skipped`).
 
     **Returns:** a [`bodyprior.dspp.PoseSet`][], clips in sorted file order.
 
@@ -597,12 +626,24 @@ def load_mocap(
             kind = skeleton_kind(bvh)
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
-        frames = motion_frames(bvh, kind, _source_fps(path, bvh, rates), fps, min_duration)
+        src_fps = _source_fps(path, bvh, rates)
+        frames = motion_frames(bvh, kind, src_fps, fps, min_duration)
+        entry = dict(kind=kind, frames=bvh.n_frames, source_fps=src_fps, poses=0, dropped=0)
+        if info is not None:
+            info[str(path)] = entry
+        entry["skipped"] = frames.size == 0
         if frames.size == 0:
             continue
         R = retarget_matrices(bvh, body, frames, _cache=cache)
+        if drop_implausible:
+            keep = plausible(R)
+            entry["dropped"] = int((~keep).sum())
+            R = R[keep]
+        entry["poses"] = len(R)
+        if len(R) == 0:
+            continue
         eulers.append(_to_euler(R))
-        clips.append(np.full(len(frames), len(names), np.int32))
+        clips.append(np.full(len(R), len(names), np.int32))
         names.append(f"{path.parent.name}/{path.stem}")
     if not eulers:
         raise ValueError(f"`paths_or_dirs`: none of the {len(files)} BVH files has enough motion.")
