@@ -1,8 +1,8 @@
 """Benchmark: DSPP sampling and training speed (issue 4 §5).
 
 - `sample_pair_ms_b1`: one jitted call that samples one shape (`z -> generator -> decoder`, 6,449
-  decimated vertices) and one pose (20 x 3 Euler angles) from the AE-GAN priors; `sample_pair_ms_b256`:
-  the same for 256 pairs in one vmapped call, per pair.
+  decimated vertices) and one pose (20 x 3 Euler angles) from the AE-GAN priors;
+  `sample_pair_ms_b256`: the same for 256 pairs in one vmapped call, per pair.
 - `train_step_ms_b1`: one jitted training cycle (AE step, discriminator step, generator step) of the
   shape AND the pose system together, batch 1 (the paper's one pair per cycle), one call per cycle;
   `train_step_ms_b64`: batch 64. `*_scan` keys: the same per cycle inside a 20-cycle `lax.scan`

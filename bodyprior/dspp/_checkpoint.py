@@ -173,13 +173,14 @@ def save_checkpoint(checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records) -
         "data_sha256": _fingerprint(u),
         "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
-    _write_zip(checkpoint_path(checkpoint_dir, tag), meta, {"leaves.eqx": payload,
-                                                            "records.npy": buf.getvalue()})  # fmt: skip
+    members = {"leaves.eqx": payload, "records.npy": buf.getvalue()}
+    _write_zip(checkpoint_path(checkpoint_dir, tag), meta, members)
 
 
 def load_checkpoint(checkpoint_dir, tag, like, cfg: DSPPConfig, key, u):
     """Returns `(train_state, records)` from `checkpoint_dir/<tag>.ckpt`, or `None` if there is no
-    checkpoint. Raises `ValueError` if it belongs to another run (data, key, sizes) or is corrupt."""
+    checkpoint. Raises `ValueError` if it belongs to another run (data, key, sizes) or is
+    corrupt."""
     d = os.fspath(checkpoint_dir)
     if not os.path.isdir(d):
         raise ValueError(f"`checkpoint_dir`: no such directory {d!r}.")

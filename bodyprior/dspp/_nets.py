@@ -16,14 +16,14 @@ are our choices (all configurable through [`bodyprior.dspp.DSPPConfig`][]):
 | pose encoder / decoder | 60 -> 128 -> 64 -> 32 / mirrored |
 | generators (shape, pose) | N(0, I_32) -> 128 -> 128 -> 32 |
 | latent discriminators | 32 -> 128 -> 128 -> 1 (ReLU, SN) |
-| baseline shape discriminator | PointNet: per-vertex 3 -> 64 -> 128 shared MLP, max-pool, 128 -> 128 -> 1 |
+| baseline shape disc. | PointNet: per-vertex 3 -> 64 -> 128 shared MLP, max-pool, 128 -> 128 -> 1 |
 | baseline pose discriminator | 60 -> 256 -> 256 -> 1 on the Euler angles |
-| baseline generators | N(0, I_32) -> 128 -> 256 -> 3V (or 60): the composition of a generator and a decoder |
+| baseline generators | N(0, I_32) -> 128 -> 256 -> 3V (or 60): like a generator + a decoder |
 
-The widths are small because the shape encoder's first and the decoder's last layer dominate the cost
-(3V x 128 = 2.5 M weights each): one training cycle at batch 1 is memory-bound on these two matrices
-(forward, backward and the Adam update stream them several times), about 2.5x slower with 256 (see
-`docs/benchmarks.md`). The bottleneck is the 32-dimensional code either way.
+The widths are small because the shape encoder's first and the decoder's last layer dominate the
+cost (3V x 128 = 2.5 M weights each): one training cycle at batch 1 is memory-bound on these two
+matrices (forward, backward and the Adam update stream them several times), about 2.5x slower with
+256 (see `docs/benchmarks.md`). The bottleneck is the 32-dimensional code either way.
 """
 
 from __future__ import annotations
@@ -130,9 +130,9 @@ class LatentDiscriminator(eqx.Module):
 
 
 class PointNetDiscriminator(eqx.Module):
-    """Geometry-space shape discriminator (paper Fig. 4 left; Qi et al. 2017): a shared per-point MLP,
-    max-pooling over the points for global context, then an MLP to one logit. Input: points `(V, 3)`
-    (already normalised by the caller)."""
+    """Geometry-space shape discriminator (paper Fig. 4 left; Qi et al. 2017): a shared per-point
+    MLP, max-pooling over the points for global context, then an MLP to one logit. Input: points
+    `(V, 3)` (already normalised by the caller)."""
 
     point_mlp: SNMLP
     head: SNMLP
@@ -169,9 +169,9 @@ class MLPDiscriminator(eqx.Module):
 
 
 def spectral_norms(disc: eqx.Module, state: eqx.nn.State) -> Float[Array, " L"]:
-    """The exact largest singular value (by SVD) of every spectrally normalised weight `W / sigma(W)`
-    in `disc`, with `sigma` from the current power-iteration state; all 1 when the iteration has
-    converged. Host/diagnostic use."""
+    """The exact largest singular value (by SVD) of every spectrally normalised weight
+    `W / sigma(W)` in `disc`, with `sigma` from the current power-iteration state; all 1 when the
+    iteration has converged. Host/diagnostic use."""
     out = []
     for sn in jax.tree_util.tree_leaves(disc, is_leaf=lambda x: isinstance(x, eqx.nn.SpectralNorm)):
         if not isinstance(sn, eqx.nn.SpectralNorm):
@@ -227,13 +227,16 @@ class DSPPConfig:
     checkpoint_every: int = 10_000
 
     def __post_init__(self):
-        for name in ("latent_dim", "noise_dim", "n_steps", "batch_size", "steps_per_call",
-                     "checkpoint_every"):  # fmt: skip
+        ints = ("latent_dim", "noise_dim", "n_steps", "batch_size", "steps_per_call",
+                "checkpoint_every")  # fmt: skip
+        for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_steps" else 1):
                 raise ValueError(f"DSPPConfig.`{name}` must be a positive int, got {v!r}.")
-        for name in ("ae_hidden", "generator_hidden", "discriminator_hidden", "pointnet_hidden",
-                     "pointnet_head_hidden", "geometry_pose_hidden", "geometry_generator_hidden"):  # fmt: skip
+        widths = ("ae_hidden", "generator_hidden", "discriminator_hidden", "pointnet_hidden",
+                  "pointnet_head_hidden", "geometry_pose_hidden",
+                  "geometry_generator_hidden")  # fmt: skip
+        for name in widths:
             v = getattr(self, name)
             if (
                 not isinstance(v, tuple)
@@ -357,7 +360,7 @@ class GeometryGAN(eqx.Module):
     disc_state: eqx.nn.State
     mean: Float[Array, "*item 3"]
     scale: Float[Array, ""]
-    centre: Float[Array, "3"]
+    centre: Float[Array, 3]
     radius: Float[Array, ""]
     kind: str = eqx.field(static=True)
     config: DSPPConfig = eqx.field(static=True)

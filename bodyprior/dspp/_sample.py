@@ -35,7 +35,8 @@ class PCAPrior(eqx.Module):
     module docstring).
 
     **Fields:** `mean` (item shape, e.g. `(V, 3)` metres or `(20, 3)` radians), `basis` `(K, D)`
-    orthonormal rows (D = item size), `stddev` `(K,)` (unbiased, `s_k / sqrt(N - 1)`), static `mode`.
+    orthonormal rows (D = item size), `stddev` `(K,)` (unbiased, `s_k / sqrt(N - 1)`), static
+    `mode`.
     """
 
     mean: Float[Array, "*item 3"]

@@ -1,17 +1,17 @@
 """Training DSPP priors (paper §3.3) and the geometry-space GAN baselines.
 
 One training cycle, as the paper: (1) an auto-encoder step on a random real sample (eq. 1 / 2,
-squared Frobenius reconstruction error); (2) a discriminator step on the *updated* encoder's codes of
-those samples against generated codes; (3) a generator step against the *updated* discriminator with
-the non-saturating loss `-E log D(G(n))` (eqs. 3-4). Three Adam optimisers with default settings
+squared Frobenius reconstruction error); (2) a discriminator step on the *updated* encoder's codes
+of those samples against generated codes; (3) a generator step against the *updated* discriminator
+with the non-saturating loss `-E log D(G(n))` (eqs. 3-4). Three Adam optimisers with default settings
 (lr 1e-3, betas 0.9/0.999, eps 1e-8; optax). The geometry baselines skip (1) and discriminate
 geometry instead of codes.
 
-The whole cycle is one pure function; `steps_per_call` cycles run in one jitted `lax.scan`; progress
-(tqdm) and checkpoints happen between calls. Everything is a deterministic function of the key, and the
-call boundaries are a fixed function of the step (multiples of `steps_per_call` and of
-`checkpoint_every`), so a run resumed from a checkpoint performs exactly the same jitted calls on the
-same state as an uninterrupted one and ends with bitwise-identical parameters.
+The whole cycle is one pure function; `steps_per_call` cycles run in one jitted `lax.scan`;
+progress (tqdm) and checkpoints happen between calls. Everything is a deterministic function of the
+key, and the call boundaries are a fixed function of the step (multiples of `steps_per_call` and of
+`checkpoint_every`), so a run resumed from a checkpoint performs exactly the same jitted calls on
+the same state as an uninterrupted one and ends with bitwise-identical parameters.
 
 Networks run in float32 whatever `jax_enable_x64` says; data are normalised on the host in float64
 (`(x - mean) / scale`, with `scale` the RMS coordinate deviation of the training set).
@@ -50,7 +50,7 @@ class TrainLog(eqx.Module):
     - `d_loss`: discriminator loss `-log D(real) - log(1 - D(fake))`, batch means, `(S,)`.
     - `g_loss`: non-saturating generator loss `-log D(G(n))`, `(S,)`.
     - `d_real`, `d_fake`: mean discriminator probabilities on the real and generated batch, `(S,)`.
-    - `wall_time_s`: seconds spent training in this call (excluding time restored from a checkpoint).
+    - `wall_time_s`: seconds spent training in this call (not the time of runs before a resume).
     - `finite`: whether every recorded loss is finite.
     """
 
@@ -196,7 +196,8 @@ def _raw_key(key) -> Array:
         key = jr.key_data(key)
     if key.shape != (2,) or key.dtype != jnp.uint32:
         raise ValueError(
-            f"`key` must be a jax.random key (PRNGKey: uint32 shape (2,)), got {key.dtype} {key.shape}."
+            "`key` must be a jax.random key (PRNGKey: uint32 shape (2,)), got "
+            f"{key.dtype} {key.shape}."
         )
     return key
 
@@ -250,7 +251,8 @@ def _train(
     step = int(ts.step)
     if step > cfg.n_steps:
         raise ValueError(
-            f"The checkpoint in {checkpoint_dir!r} is at step {step}, beyond `n_steps` {cfg.n_steps}."
+            f"The checkpoint in {checkpoint_dir!r} is at step {step}, beyond `n_steps` "
+            f"{cfg.n_steps}."
         )
     every = max(
         cfg.steps_per_call, (cfg.checkpoint_every // cfg.steps_per_call) * cfg.steps_per_call

@@ -1,0 +1,282 @@
+"""DSPP experiment (issue 4 §3, §5): deep shape and pose priors (AE-GAN) vs geometry-space GANs.
+
+Trains the AE-GAN priors and geometry-space GAN baselines, samples them, and measures realism and
+diversity against held-out real data, alongside PCA baselines fitted to the same training data.
+
+Data. Shapes: `bodyprior.sample_population` (the CAESAR stand-in, seed `--seed`) on the decimated
+6,449-vertex topology; the bodies are split at random (seed) into train (80 %) and test (20 %).
+Poses: every BVH clip under `--mocap` (default `../shared/data/mocap`) through
+`bodyprior.dspp.load_mocap` at 4 frames/s, split by whole clips (`split_by_clip`, 20 % test).
+
+Methods: (a) `aegan` the DSPP prior; (b) `geomgan` a GAN whose discriminator sees geometry (PointNet
+for shapes, MLP on Euler angles for poses); (c) `pca` Gaussian sampling of a PCA space with as many
+components as the AE-GAN latent dimension; (d) `pca3sigma` the same PCA with every coefficient at
+one of its +-3 sigma extremes (random signs); plus `pcauniform` (coefficients uniform in
+[-3 sigma, 3 sigma]) and `train`, a random draw of *real training items*: the score a perfect
+generator of the training distribution would get against the test set (the reference row).
+
+Metrics (H-metrics' `bodyprior.generative_metrics`): MMD, COV, 1-NNA (0.5 ideal), specificity (mean
+distance to the nearest training item), diversity (average pairwise distance); shapes with the mean
+vertex distance (reported in mm), poses with the mean per-joint geodesic angle (reported in
+degrees); poses also the fraction of samples outside the joint limits derived from the training
+mocap (`joint_limits`: the full training range; `_q005`: 0.5 % quantiles).
+Keys: `<shape|pose>_<metric>_<method>`.
+
+Usage: `python experiments/dspp.py --quick --out out/dspp_quick [--seed 0]` (a few minutes; tests
+use `--quick --tiny`) or `python experiments/dspp.py --out out/dspp` (full; sized for about 25 min
+on 2 shared cores). Writes `metrics.json`, loss curves `loss_*.png`, sample renderings
+`shape_samples.png`, `pose_samples.png`, and the trained priors `*.dspp`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+import bodyprior as bp
+from bodyprior import dspp
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_MOCAP = REPO.parent / "shared" / "data" / "mocap"
+
+# Sizes per mode. steps: training cycles of each of the four GANs.
+SIZES = {
+    "full": dict(n_bodies=4308, n_eval=500, n_train_ref=1000, batch=16, spc=500,
+                 steps=dict(aegan_shape=12000, geomgan_shape=4000, aegan_pose=20000,
+                            geomgan_pose=20000), mocap=None, render=8),
+    "quick": dict(n_bodies=400, n_eval=64, n_train_ref=128, batch=16, spc=250,
+                  steps=dict(aegan_shape=1000, geomgan_shape=300, aegan_pose=1000,
+                             geomgan_pose=1000),
+                  mocap=("cmu_3dsmax-friendly_yuki-koyama-bvh11",
+                         "cmu_daz-friendly_papagina-acLSTM/indian_dance"), render=4),
+    "tiny": dict(n_bodies=120, n_eval=24, n_train_ref=48, batch=8, spc=100,
+                 steps=dict(aegan_shape=200, geomgan_shape=100, aegan_pose=200,
+                            geomgan_pose=200),
+                 mocap=("cmu_3dsmax-friendly_yuki-koyama-bvh11",), render=2),
+}  # fmt: skip
+
+METHODS = ("aegan", "geomgan", "pca", "pca3sigma", "pcauniform", "train")
+
+
+def _log(msg: str) -> None:
+    print(f"[dspp {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _shape_data(seed: int, n: int, progress: bool):
+    vertex_map, faces = bp.load_decimated()
+    pop = bp.sample_population(jr.PRNGKey(seed), n, progress=progress)
+    x = np.asarray(pop.vertices[:, np.asarray(vertex_map)], np.float32)
+    perm = np.random.default_rng(seed).permutation(n)
+    n_test = max(2, int(round(0.2 * n)))
+    return x[perm[n_test:]], x[perm[:n_test]], np.asarray(faces)
+
+
+def _pose_data(mocap: Path, subdirs, seed: int, progress: bool):
+    paths = [mocap / s for s in subdirs] if subdirs else [mocap]
+    poses = dspp.load_mocap([str(p) for p in paths], fps=4.0, progress=progress)
+    train, test = dspp.split_by_clip(poses, 0.2, seed=seed)
+    return (np.asarray(train.euler, np.float32), np.asarray(test.euler, np.float32),
+            poses.n_poses, len(poses.clip_names))  # fmt: skip
+
+
+def _subset(x: np.ndarray, n: int, rng) -> np.ndarray:
+    return x[rng.choice(x.shape[0], size=min(n, x.shape[0]), replace=False)]
+
+
+def _evaluate(domain, samples, test_ref, train_ref, metric, unit):
+    out = {}
+    for method, gen in samples.items():
+        m = bp.generative_metrics(gen, test_ref, metric, train=train_ref)
+        out[f"{domain}_1nna_{method}"] = m["one_nna"]
+        out[f"{domain}_cov_{method}"] = m["coverage"]
+        out[f"{domain}_mmd_{method}"] = m["mmd"] * unit
+        out[f"{domain}_specificity_{method}"] = m["specificity"] * unit
+        out[f"{domain}_diversity_{method}"] = m["diversity"] * unit
+        out[f"{domain}_diversity_ref"] = m["diversity_ref"] * unit
+    return out
+
+
+def run(args) -> dict:
+    mode = "tiny" if args.tiny else ("quick" if args.quick else "full")
+    S = SIZES[mode]
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ckpt = out_dir / "checkpoints"
+    ckpt.mkdir(exist_ok=True)
+    progress = not args.no_progress
+    t_start = time.perf_counter()
+    key = jr.PRNGKey(args.seed)
+    k_shape, k_geo_s, k_pose, k_geo_p, k_eval = jr.split(key, 5)
+    rng = np.random.default_rng(args.seed)
+    metrics: dict = {"mode": mode, "seed": args.seed}
+    timings: dict = {}
+
+    # ---------------------------------------------------------------- data
+    t = time.perf_counter()
+    x_train, x_test, faces = _shape_data(args.seed, S["n_bodies"], progress)
+    timings["shape_data_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    p_train, p_test, n_poses, n_clips = _pose_data(
+        Path(args.mocap), S["mocap"], args.seed, progress
+    )
+    timings["pose_data_s"] = time.perf_counter() - t
+    metrics.update(
+        shape_n_train=int(x_train.shape[0]), shape_n_test=int(x_test.shape[0]),
+        shape_n_vertices=int(x_train.shape[1]), pose_n_train=int(p_train.shape[0]),
+        pose_n_test=int(p_test.shape[0]), pose_n_clips=n_clips,
+    )  # fmt: skip
+    _log(f"shapes {x_train.shape[0]}/{x_test.shape[0]} train/test; poses {p_train.shape[0]}/"
+         f"{p_test.shape[0]} from {n_clips} clips")  # fmt: skip
+
+    def cfg(name):
+        kw = {}
+        if mode == "tiny":  # fewer/smaller layers: same code paths, a fraction of the compile time
+            kw = dict(latent_dim=16, noise_dim=16, ae_hidden=(64,), generator_hidden=(64,),
+                      discriminator_hidden=(64,), pointnet_hidden=(32,),
+                      pointnet_head_hidden=(32,), geometry_pose_hidden=(64,),
+                      geometry_generator_hidden=(64,))  # fmt: skip
+        return dspp.DSPPConfig(
+            n_steps=S["steps"][name], batch_size=S["batch"], steps_per_call=S["spc"],
+            checkpoint_every=S["spc"] * 4, **kw,
+        )  # fmt: skip
+
+    # ---------------------------------------------------------------- training
+    models, logs = {}, {}
+    kw = dict(checkpoint_dir=ckpt, progress=progress)
+    jobs = (
+        ("aegan_shape", lambda: dspp.train_shape_prior(
+            x_train, key=k_shape, config=cfg("aegan_shape"), **kw)),
+        ("geomgan_shape", lambda: dspp.train_geometry_gan(
+            x_train, kind="shape", key=k_geo_s, config=cfg("geomgan_shape"), **kw)),
+        ("aegan_pose", lambda: dspp.train_pose_prior(
+            p_train, key=k_pose, config=cfg("aegan_pose"), **kw)),
+        ("geomgan_pose", lambda: dspp.train_geometry_gan(
+            p_train, kind="pose", key=k_geo_p, config=cfg("geomgan_pose"), **kw)),
+    )  # fmt: skip
+    for name, job in jobs:
+        t = time.perf_counter()
+        models[name], logs[name] = job()
+        timings[f"train_{name}_s"] = time.perf_counter() - t
+        log = logs[name]
+        metrics[f"train_steps_{name}"] = log.n_steps
+        tail = max(1, log.n_steps // 10)
+        metrics[f"final_d_loss_{name}"] = float(np.mean(log.d_loss[-tail:]))
+        metrics[f"final_g_loss_{name}"] = float(np.mean(log.g_loss[-tail:]))
+        bp_path = out_dir / f"{name}.dspp"
+        dspp.save_prior(bp_path, models[name])
+        dspp.plot_train_log(log, out_dir / f"loss_{name}.png", title=name.replace("_", " "))
+        _log(f"trained {name}: {log.n_steps} cycles in {timings[f'train_{name}_s']:.0f} s")
+
+    # ---------------------------------------------------------------- baselines + samples
+    d = models["aegan_shape"].latent_dim
+    n_eval = S["n_eval"]
+    keys = jr.split(k_eval, 12)
+    samples = {"shape": {}, "pose": {}}
+    train_refs = {}
+    for i, (domain, xtr) in enumerate((("shape", x_train), ("pose", p_train))):
+        pcas = {m: dspp.fit_pca_prior(xtr, min(d, xtr.shape[0] - 1), mode=mode_)
+                for m, mode_ in (("pca", "gaussian"), ("pca3sigma", "pm3sigma"),
+                                 ("pcauniform", "uniform3sigma"))}  # fmt: skip
+        gens = {"aegan": models[f"aegan_{domain}"], "geomgan": models[f"geomgan_{domain}"], **pcas}
+        for j, (m, model) in enumerate(gens.items()):
+            samples[domain][m] = np.asarray(dspp.sample(model, keys[6 * i + j], n_eval))
+        # Real training items as a "generator" (reference row); disjoint from the items that the
+        # specificity is measured against.
+        perm = rng.permutation(xtr.shape[0])
+        samples[domain]["train"] = xtr[perm[:n_eval]]
+        train_refs[domain] = xtr[perm[n_eval:][: S["n_train_ref"]]]
+
+    # Reconstruction quality of the auto-encoders vs PCA with the same number of components.
+    for domain, xte in (("shape", x_test), ("pose", p_test)):
+        prior = models[f"aegan_{domain}"]
+        rec = np.asarray(jax.jit(jax.vmap(prior.reconstruct))(jnp.asarray(xte)))
+        pca = dspp.fit_pca_prior(x_train if domain == "shape" else p_train, d)
+        u = (xte - np.asarray(pca.mean)).reshape(len(xte), -1)
+        b = np.asarray(pca.basis)
+        rec_pca = (np.asarray(pca.mean).reshape(-1) + (u @ b.T) @ b).reshape(xte.shape)
+        if domain == "shape":
+            err = lambda r: float(np.mean(np.linalg.norm(r - xte, axis=-1)) * 1e3)  # noqa: E731
+            metrics["shape_recon_mm_aegan"], metrics["shape_recon_mm_pca"] = err(rec), err(rec_pca)
+        else:
+            err = lambda r: float(np.degrees(np.sqrt(np.mean((r - xte) ** 2))))  # noqa: E731
+            metrics["pose_recon_rms_deg_aegan"] = err(rec)
+            metrics["pose_recon_rms_deg_pca"] = err(rec_pca)
+
+    # ---------------------------------------------------------------- metrics
+    t = time.perf_counter()
+    shape_ref = _subset(x_test, n_eval, rng)
+    metrics.update(_evaluate("shape", samples["shape"], shape_ref, train_refs["shape"],
+                             bp.mean_vertex_distance_metric, 1e3))  # fmt: skip
+    pose_ref = _subset(p_test, n_eval, rng)
+    metrics.update(_evaluate("pose", samples["pose"], pose_ref, train_refs["pose"],
+                             bp.pose_geodesic_metric, float(np.degrees(1.0))))  # fmt: skip
+    # Joint limits = the full range of each Euler angle over the training mocap (quantile 0), so
+    # real poses violate them only where the test clips leave the training range (key `_test`);
+    # `_q005` keys: limits at the 0.5 %/99.5 % quantiles (stricter; ~45 % of in-distribution poses
+    # have at least one of their 60 angles in some tail).
+    for suffix, q in (("", 0.0), ("_q005", 0.005)):
+        limits = dspp.joint_limits(p_train, quantile=q)
+        for m, gen in {**samples["pose"], "test": p_test}.items():
+            metrics[f"pose_joint_limit_violation_{m}{suffix}"] = dspp.joint_limit_violation(
+                gen, limits
+            )
+    timings["metrics_s"] = time.perf_counter() - t
+    metrics["units"] = {"shape_mmd/specificity/diversity/recon": "mm (mean vertex distance)",
+                        "pose_mmd/specificity/diversity": "deg (mean per-joint geodesic angle)",
+                        "pose_recon_rms_deg": "deg (RMS Euler-angle error)"}  # fmt: skip
+
+    # ---------------------------------------------------------------- pictures
+    t = time.perf_counter()
+    nr = S["render"]
+    show = ("train", "aegan", "geomgan", "pca", "pca3sigma")
+    shapes = np.concatenate([samples["shape"][m][:nr] for m in show])
+    labels = [f"{m} {i + 1}" if m != "train" else f"real {i + 1}" for m in show for i in range(nr)]
+    img = bp.contact_sheet(shapes, faces, ncols=nr, labels=labels, cell_size=(200, 110),
+                           antialias=1)  # fmt: skip
+    bp.save_png(out_dir / "shape_samples.png", img)
+    body = bp.load_default_body("cmu_mb")
+    poses = np.concatenate([samples["pose"][m][:nr] for m in show])
+    dspp.render_poses(body, poses, out_dir / "pose_samples.png", labels=labels, ncols=nr,
+                      cell_size=(200, 130))  # fmt: skip
+    timings["render_s"] = time.perf_counter() - t
+
+    timings["total_s"] = time.perf_counter() - t_start
+    metrics["timings"] = timings
+    metrics["config"] = {k: cfg(k).to_dict() for k in S["steps"]}
+    bp.atomic_write_json(out_dir / "metrics.json", metrics)
+    _log(f"done in {timings['total_s']:.0f} s -> {out_dir / 'metrics.json'}")
+    return metrics
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True, help="output directory")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="small run (minutes)")
+    ap.add_argument(
+        "--tiny", action="store_true", help="smallest run, for the tests (implies quick)"
+    )
+    ap.add_argument("--mocap", default=str(DEFAULT_MOCAP), help="directory of CMU BVH clips")
+    ap.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    if not Path(args.mocap).is_dir():
+        ap.error(f"--mocap: no such directory {args.mocap}")
+    metrics = run(args)
+    keys = ("shape_1nna_aegan", "shape_1nna_geomgan", "shape_1nna_pca", "pose_1nna_aegan",
+            "pose_1nna_geomgan", "pose_1nna_pca", "pose_joint_limit_violation_aegan")  # fmt: skip
+    for k in keys:
+        print(f"{k}: {metrics[k]:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    sys.exit(main())

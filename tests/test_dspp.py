@@ -1,0 +1,232 @@
+"""DSPP networks, training, checkpoints and sampling (bodyprior.dspp, H-core)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+from bodyprior import dspp
+from bodyprior.dspp._nets import LatentDiscriminator, PointNetDiscriminator
+
+V = 40  # toy "mesh" size: same code paths as the 6,449-vertex topology, a fraction of the cost
+TINY = dict(latent_dim=4, noise_dim=4, ae_hidden=(16,), generator_hidden=(16,),
+            discriminator_hidden=(16,), pointnet_hidden=(8,), pointnet_head_hidden=(8,),
+            geometry_pose_hidden=(16,), geometry_generator_hidden=(16,))  # fmt: skip
+
+
+def _cfg(**kw):
+    return dspp.DSPPConfig(**{**TINY, "n_steps": 20, "batch_size": 2, "steps_per_call": 5,
+                              "checkpoint_every": 10, **kw})  # fmt: skip
+
+
+def _shapes(n=12, seed=0):
+    rng = np.random.default_rng(seed)
+    base = rng.normal(size=(V, 3))
+    # a 2-parameter family (scale + a bump), so that there is structure to learn
+    a, b = rng.uniform(0.8, 1.2, n), rng.normal(size=n)
+    bump = np.zeros((V, 3))
+    bump[: V // 2, 2] = 0.3
+    return a[:, None, None] * base[None] + b[:, None, None] * bump[None]
+
+
+def _poses(n=30, seed=1):
+    return np.random.default_rng(seed).normal(scale=0.4, size=(n, 20, 3))
+
+
+def test_network_shapes(getkey):
+    cfg = _cfg()
+    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, getkey())
+    pp = dspp.init_aegan("pose", np.zeros((20, 3)), 1.0, cfg, getkey())
+    assert isinstance(sp, dspp.ShapePrior) and isinstance(pp, dspp.PosePrior)
+    x = jnp.ones((V, 3))
+    z = sp.encode(x)
+    assert z.shape == (4,) and z.dtype == jnp.float32 and sp.latent_dim == 4
+    assert sp.decode(z).shape == (V, 3) and sp.sample(getkey()).shape == (V, 3)
+    assert sp.latent_logit(z).shape == () and sp.n_vertices == V
+    assert pp.sample(getkey()).shape == (20, 3) and pp.encode(jnp.zeros((20, 3))).shape == (4,)
+    for kind, item in (("shape", (V, 3)), ("pose", (20, 3))):
+        g = dspp.init_geometry_gan(kind, np.zeros(item), 1.0, cfg, getkey())
+        assert g.sample(getkey()).shape == item and g.logit(jnp.zeros(item)).shape == ()
+    # discriminators: every linear map is spectrally normalised
+    d, _ = eqx.nn.make_with_state(PointNetDiscriminator)((8, 16), (8,), key=getkey())
+
+    def count(cls):
+        leaves = jax.tree_util.tree_leaves(d, is_leaf=lambda x: isinstance(x, cls))
+        return sum(isinstance(x, cls) for x in leaves)
+
+    n_sn, n_lin = count(eqx.nn.SpectralNorm), count(eqx.nn.Linear)
+    assert n_sn == n_lin == 4
+
+
+def test_spectral_norm_bounds_lipschitz(getkey):
+    disc, state = eqx.nn.make_with_state(LatentDiscriminator)(6, (32, 32), key=getkey())
+    # Move the weights far from norm 1 and away from the singular vectors the layer was built with:
+    # the power iteration must track the new largest singular value.
+    rng = np.random.default_rng(0)
+    disc = jax.tree_util.tree_map(
+        lambda w: (
+            7.0 * w + jnp.asarray(rng.normal(size=w.shape), w.dtype)
+            if getattr(w, "ndim", 0) == 2
+            else w
+        ),
+        disc,
+    )
+    call = eqx.filter_jit(lambda d, z, s: d(z, s))
+    z = jnp.ones(6, jnp.float32)
+    for _ in range(60):  # power iterations, one per training call
+        _, state = call(disc, z, state)
+    sig = np.asarray(dspp.spectral_norms(disc, state))
+    np.testing.assert_allclose(sig, 1.0, atol=2e-3)
+    # ReLU network with unit-norm layers is 1-Lipschitz (up to the power-iteration error).
+    x, y = jr.normal(getkey(), (2, 200, 6), jnp.float32)
+    f = jax.vmap(lambda a: disc(a, state, inference=True)[0])
+    ratio = np.abs(np.asarray(f(x) - f(y))) / np.linalg.norm(np.asarray(x - y), axis=1)
+    assert ratio.max() <= 1.0 + 3e-3
+    # without normalisation the same network is far from 1-Lipschitz
+    raw = [lyr.layer.weight for lyr in disc.mlp.layers]
+    assert np.prod([np.linalg.norm(np.asarray(w), 2) for w in raw]) > 10.0
+
+
+def test_training_decreases_ae_loss_and_is_deterministic(getkey):
+    data = _shapes()
+    cfg = _cfg(n_steps=300, batch_size=4, steps_per_call=100, checkpoint_every=300)
+    prior, log = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    assert log.n_steps == 300 and log.finite
+    assert np.mean(log.ae_loss[-20:]) < 0.2 * np.mean(log.ae_loss[:20])
+    assert np.all((log.d_real > 0) & (log.d_real < 1)) and np.all(np.isfinite(log.g_loss))
+    # reconstruction on the training items improves over the untrained auto-encoder
+    rec = jax.vmap(prior.reconstruct)(jnp.asarray(data, jnp.float32))
+    assert float(jnp.mean(jnp.linalg.norm(rec - data, axis=-1))) < 0.5 * float(
+        np.mean(np.linalg.norm(data - data.mean(0), axis=-1))
+    )
+    prior2, log2 = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    assert eqx.tree_equal(eqx.filter(prior, eqx.is_array), eqx.filter(prior2, eqx.is_array))
+    np.testing.assert_array_equal(log.ae_loss, log2.ae_loss)
+
+
+def _leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_array))]
+
+
+@pytest.mark.parametrize("which", ["aegan_pose", "geomgan_shape"])
+def test_checkpoint_resume_is_bitwise_identical(tmp_path, which):
+    if which == "aegan_pose":
+
+        def train(cfg, ckpt, key=5):
+            return dspp.train_pose_prior(_poses(), key=jr.PRNGKey(key), config=cfg,
+                                         checkpoint_dir=ckpt, progress=False)  # fmt: skip
+    else:
+
+        def train(cfg, ckpt, key=5):
+            return dspp.train_geometry_gan(_shapes(), kind="shape", key=jr.PRNGKey(key), config=cfg,
+                                           checkpoint_dir=ckpt, progress=False)  # fmt: skip
+
+    full, log_full = train(_cfg(n_steps=20), None)
+    half, _ = train(_cfg(n_steps=10), tmp_path)  # "interrupted" after step 10
+    assert (tmp_path / f"{which}.ckpt").exists()
+    resumed, log_res = train(_cfg(n_steps=20), tmp_path)
+    for a, b in zip(_leaves(full), _leaves(resumed)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(log_full.d_loss, log_res.d_loss)
+    assert log_res.n_steps == 20
+    # the two halves really differ (the resume did continue training)
+    assert any(not np.array_equal(a, b) for a, b in zip(_leaves(half), _leaves(full)))
+    # a checkpoint of another run is refused, not silently resumed
+    with pytest.raises(ValueError, match="another `key`"):
+        train(_cfg(), tmp_path, key=6)
+    ck = tmp_path / f"{which}.ckpt"
+    raw = bytearray(ck.read_bytes())
+    raw[-200] ^= 0xFF
+    ck.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="checksum|corrupt|readable"):
+        train(_cfg(n_steps=30), tmp_path)
+
+
+def test_sampling_jit_vmap_and_save_load(tmp_path, getkey):
+    cfg = _cfg()
+    sp = dspp.init_aegan("shape", _shapes().mean(0), 0.5, cfg, getkey())
+    key = jr.PRNGKey(9)
+    xs = dspp.sample(sp, key, 5)
+    assert xs.shape == (5, V, 3)
+    one = jnp.stack([sp.sample(k) for k in jr.split(key, 5)])
+    np.testing.assert_allclose(np.asarray(xs), np.asarray(one), rtol=1e-5, atol=1e-6)
+    path = tmp_path / "shape.dspp"
+    dspp.save_prior(path, sp)
+    back = dspp.load_prior(path)
+    assert isinstance(back, dspp.ShapePrior) and back.config == sp.config
+    np.testing.assert_array_equal(np.asarray(dspp.sample(back, key, 5)), np.asarray(xs))
+    z = sp.encode(jnp.zeros((V, 3)))
+    assert float(back.latent_logit(z)) == float(sp.latent_logit(z))
+    g = dspp.init_geometry_gan("pose", np.zeros((20, 3)), 1.0, cfg, getkey())
+    dspp.save_prior(tmp_path / "g.dspp", g)
+    g2 = dspp.load_prior(tmp_path / "g.dspp")
+    assert g2.kind == "pose"
+    np.testing.assert_array_equal(np.asarray(g2.sample(key)), np.asarray(g.sample(key)))
+    (tmp_path / "bad.dspp").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="readable"):
+        dspp.load_prior(tmp_path / "bad.dspp")
+
+
+def test_pca_baselines():
+    data = _poses(n=50)
+    for mode in dspp.PCA_MODES:
+        pca = dspp.fit_pca_prior(data, 6, mode=mode)
+        x = np.asarray(dspp.sample(pca, jr.PRNGKey(0), 400), np.float64)
+        c = (x - np.asarray(pca.mean)).reshape(400, -1) @ np.asarray(pca.basis).T
+        c /= np.asarray(pca.stddev)
+        if mode == "gaussian":
+            assert abs(c.std() - 1.0) < 0.08 and abs(c.mean()) < 0.08
+        elif mode == "pm3sigma":
+            np.testing.assert_allclose(np.abs(c), 3.0, rtol=1e-4)
+        else:
+            assert np.abs(c).max() <= 3.0 + 1e-4 and abs(c.std() - np.sqrt(3.0)) < 0.1
+    # stddev matches the data's variance along the components (unbiased)
+    pca = dspp.fit_pca_prior(data, 6)
+    proj = (data - data.mean(0)).reshape(50, -1) @ np.asarray(pca.basis, np.float64).T
+    np.testing.assert_allclose(proj.std(0, ddof=1), np.asarray(pca.stddev), rtol=1e-5)
+
+
+def test_bad_inputs(tmp_path, getkey):
+    cfg = _cfg()
+    with pytest.raises(ValueError, match=r"`data` must have shape \(\*, \*, 3\)"):
+        dspp.train_shape_prior(np.zeros((5, V)), key=jr.PRNGKey(0), config=cfg)
+    with pytest.raises(ValueError, match=r"`data` must have shape \(\*, 20, 3\)"):
+        dspp.train_pose_prior(np.zeros((5, 19, 3)), key=jr.PRNGKey(0), config=cfg)
+    bad = _shapes()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        dspp.train_shape_prior(bad, key=jr.PRNGKey(0), config=cfg)
+    with pytest.raises(ValueError, match="identical"):
+        dspp.train_shape_prior(np.ones((4, V, 3)), key=jr.PRNGKey(0), config=cfg)
+    with pytest.raises(ValueError, match="`kind`"):
+        dspp.train_geometry_gan(_shapes(), kind="mesh", key=jr.PRNGKey(0), config=cfg)
+    with pytest.raises(ValueError, match="`config`"):
+        dspp.train_shape_prior(_shapes(), key=jr.PRNGKey(0), config={"n_steps": 3})
+    with pytest.raises(ValueError, match="batch_size"):
+        dspp.DSPPConfig(batch_size=0)
+    with pytest.raises(ValueError, match="ae_hidden"):
+        dspp.DSPPConfig(ae_hidden=(0,))
+    with pytest.raises(ValueError, match="`key`"):
+        dspp.train_shape_prior(_shapes(), key=3, config=cfg)
+    with pytest.raises(ValueError, match="checkpoint_dir"):
+        dspp.train_shape_prior(_shapes(), key=jr.PRNGKey(0), config=cfg,
+                               checkpoint_dir=tmp_path / "missing")  # fmt: skip
+    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, getkey())
+    with pytest.raises(ValueError, match=r"`x` must have shape \(40, 3\)"):
+        sp.encode(jnp.zeros((V + 1, 3)))
+    with pytest.raises(ValueError, match=r"`z` must have shape \(4,\)"):
+        sp.decode(jnp.zeros(5))
+    with pytest.raises(ValueError, match="`n` must be a positive int"):
+        dspp.sample(sp, jr.PRNGKey(0), 0)
+    with pytest.raises(ValueError, match="`model`"):
+        dspp.sample("prior", jr.PRNGKey(0), 2)
+    with pytest.raises(ValueError, match="`n_components`"):
+        dspp.fit_pca_prior(_poses(n=5), 5)
+    with pytest.raises(ValueError, match="`mode`"):
+        dspp.fit_pca_prior(_poses(n=5), 2, mode="laplace")
+    with pytest.raises(ValueError, match="`prior`"):
+        dspp.save_prior(tmp_path / "x.dspp", object())
+    with pytest.raises(ValueError, match="no such file"):
+        dspp.load_prior(tmp_path / "none.dspp")

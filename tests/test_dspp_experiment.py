@@ -1,0 +1,55 @@
+"""The DSPP experiment end to end, in its smallest mode (`--quick --tiny`: 120 bodies, 3 mocap
+clips, a few hundred cycles of small networks; about a minute of CPU)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+MOCAP = REPO.parent / "shared" / "data" / "mocap"
+
+REQUIRED = (
+    "shape_1nna_aegan", "shape_1nna_geomgan", "shape_1nna_pca", "shape_cov_aegan",
+    "shape_mmd_aegan", "pose_1nna_aegan", "pose_1nna_geomgan", "pose_1nna_pca",
+    "pose_joint_limit_violation_aegan",
+)  # fmt: skip
+METHODS = ("aegan", "geomgan", "pca", "pca3sigma", "pcauniform", "train")
+
+
+@pytest.mark.skipif(not MOCAP.is_dir(), reason="needs ../shared/data/mocap")
+def test_dspp_experiment_tiny(tmp_path):
+    out = tmp_path / "dspp"
+    env = {**os.environ, "MPLBACKEND": "Agg", "JAX_ENABLE_X64": "0"}
+    r = subprocess.run(
+        [sys.executable, str(REPO / "experiments" / "dspp.py"), "--quick", "--tiny", "--out",
+         str(out), "--seed", "1", "--no-progress", "--mocap", str(MOCAP)],
+        capture_output=True, text=True, env=env, timeout=900,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mode"] == "tiny" and m["seed"] == 1
+    for k in REQUIRED:
+        assert k in m, k
+    for dom in ("shape", "pose"):
+        for meth in METHODS:
+            assert 0.0 <= m[f"{dom}_1nna_{meth}"] <= 1.0
+            assert 0.0 < m[f"{dom}_cov_{meth}"] <= 1.0
+            for q in ("mmd", "specificity", "diversity"):
+                assert m[f"{dom}_{q}_{meth}"] >= 0.0
+    for meth in (*METHODS, "test"):
+        assert 0.0 <= m[f"pose_joint_limit_violation_{meth}"] <= 1.0
+    # real training poses are inside the training range by definition
+    assert m["pose_joint_limit_violation_train"] == 0.0
+    # sanity of the units: shapes differ by centimetres (mm), poses by degrees
+    assert 5.0 < m["shape_diversity_ref"] < 500.0 and 1.0 < m["pose_diversity_ref"] < 90.0
+    # the +-3 sigma PCA corners are further from real bodies than Gaussian PCA samples
+    assert m["shape_mmd_pca3sigma"] > m["shape_mmd_pca"]
+    for name in ("loss_aegan_shape", "loss_geomgan_shape", "loss_aegan_pose", "loss_geomgan_pose",
+                 "shape_samples", "pose_samples"):  # fmt: skip
+        png = out / f"{name}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert (out / "aegan_shape.dspp").exists() and (out / "checkpoints").is_dir()
