@@ -3,9 +3,9 @@
 One training cycle, as the paper: (1) an auto-encoder step on a random real sample (eq. 1 / 2,
 squared Frobenius reconstruction error); (2) a discriminator step on the *updated* encoder's codes
 of those samples against generated codes; (3) a generator step against the *updated* discriminator
-with the non-saturating loss `-E log D(G(n))` (eqs. 3-4). Three Adam optimisers with default settings
-(lr 1e-3, betas 0.9/0.999, eps 1e-8; optax). The geometry baselines skip (1) and discriminate
-geometry instead of codes.
+with the non-saturating loss `-E log D(G(n))` (eqs. 3-4). Three Adam optimisers with default
+settings (lr 1e-3, betas 0.9/0.999, eps 1e-8; optax). The geometry baselines skip (1) and
+discriminate geometry instead of codes.
 
 The whole cycle is one pure function; `steps_per_call` cycles run in one jitted `lax.scan`;
 progress (tqdm) and checkpoints happen between calls. Everything is a deterministic function of the
