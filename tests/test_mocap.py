@@ -13,6 +13,7 @@ from bodyprior.dspp import (
     EULER_ORDER,
     POSE_JOINTS,
     PoseSet,
+    find_mocap_dir,
     load_mocap,
     pose_euler,
     render_poses,
@@ -21,15 +22,14 @@ from bodyprior.dspp import (
 )
 from bodyprior.dspp import _mocap as M
 
-_REPO = Path(__file__).resolve().parents[1]
-
 
 def _mocap_dir() -> Path | None:
-    env = os.environ.get("BODYPRIOR_MOCAP_DIR")
-    candidates = [Path(env)] if env else []
-    # CI: ../shared/data/mocap next to the checkout; this machine: /work/shared/data/mocap
-    candidates += [_REPO.parent / "shared/data/mocap", _REPO.parents[1] / "shared/data/mocap"]
-    return next((c for c in candidates if c.is_dir()), None)
+    # $BODYPRIOR_MOCAP_DIR, else ../shared/data/mocap next to the checkout (CI and this machine)
+    found = find_mocap_dir()
+    repo_rel = Path(__file__).resolve().parents[2] / "shared/data/mocap"
+    if found is None and "BODYPRIOR_MOCAP_DIR" not in os.environ and repo_rel.is_dir():
+        return repo_rel
+    return found
 
 
 MOCAP = _mocap_dir()
@@ -237,6 +237,13 @@ def test_retarget_rest_pose_is_swing_only(body):
         b /= np.linalg.norm(b)
         w = np.array([R[k][2, 1] - R[k][1, 2], R[k][0, 2] - R[k][2, 0], R[k][1, 0] - R[k][0, 1]])
         assert abs(w @ b) < 1e-9, n  # rotation axis (∝ w) perpendicular to the bone: a swing
+
+
+def test_find_mocap_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("BODYPRIOR_MOCAP_DIR", str(tmp_path))
+    assert find_mocap_dir() == tmp_path
+    monkeypatch.setenv("BODYPRIOR_MOCAP_DIR", str(tmp_path / "absent"))
+    assert find_mocap_dir() is None
 
 
 def test_skeleton_kind_rejects_unknown(tmp_path, body):

@@ -18,6 +18,7 @@ from ._mocap import (
     EULER_ORDER as EULER_ORDER,
     POSE_JOINTS as POSE_JOINTS,
     PoseSet as PoseSet,
+    find_mocap_dir as find_mocap_dir,
     load_mocap as load_mocap,
     pose_euler as pose_euler,
     render_poses as render_poses,

@@ -99,6 +99,7 @@ __all__ = [
     "EULER_ORDER",
     "POSE_JOINTS",
     "PoseSet",
+    "find_mocap_dir",
     "load_mocap",
     "pose_euler",
     "render_poses",
@@ -521,6 +522,19 @@ def _to_euler(R: np.ndarray, order: str = EULER_ORDER) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------------
 # loading
+
+
+def find_mocap_dir() -> Path | None:
+    """The shared CMU mocap folder, or `None` if absent.
+
+    `$BODYPRIOR_MOCAP_DIR` if set (returned only if it is a directory), else `../shared/data/mocap`
+    next to the repository checkout (where CI and the project machines keep it).
+    """
+    env = os.environ.get("BODYPRIOR_MOCAP_DIR")
+    if env:
+        return Path(env) if Path(env).is_dir() else None
+    candidate = Path(__file__).resolve().parents[3] / "shared" / "data" / "mocap"
+    return candidate if candidate.is_dir() else None
 
 
 def _bvh_files(paths_or_dirs) -> list[Path]:
