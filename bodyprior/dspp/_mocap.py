@@ -27,8 +27,9 @@ hinge, no twist is introduced), twist comes from the mocap, and posed bone direc
 not pose bones stay at the identity, so their mocap rotation is composed into the next pose bone
 below. The root frame `W_root` is dropped.
 
-**Joint maps** (rig bone <- mocap driver; its direction is driver -> end in the mocap and
-rig head -> rig end point in the rig; left side shown, the right side mirrors it):
+**Joint maps** (rig bone <- mocap driver; its direction is driver -> end in the mocap and rig head
+-> rig end point in the rig, by default the head of the rig bone named like the mocap end; left
+side shown, the right side mirrors it):
 
 | rig bone | CMU (MotionBuilder names) | end | Daz-friendly | end |
 |---|---|---|---|---|
@@ -40,14 +41,14 @@ rig head -> rig end point in the rig; left side shown, the right side mirrors it
 | LeftToeBase (not a pose bone) | LeftToeBase | End Site | - | - |
 | LowerBack | LowerBack | Spine | abdomen | chest (rig end: Spine1 head) |
 | Spine | Spine | Spine1 | - (identity: composed into LowerBack) | - |
-| Spine1 | Spine1 | Neck1 | chest | neck |
+| Spine1 | Spine1 | Neck1 (rig end: Neck head) | chest | neck (rig end: Neck head) |
 | Neck | Neck | Neck1 | neck | head (rig end: Head head) |
 | Neck1 | Neck1 | Head | - (identity: composed into Neck) | - |
-| Head | Head | End Site | head | - (no direction: C = C_Neck) |
+| Head | Head | End Site (rig end: Head tail) | head | - (no direction: C = C_Neck) |
 | LeftShoulder | LeftShoulder | LeftArm | lCollar | lShldr |
 | LeftArm | LeftArm | LeftForeArm | lShldr | lForeArm |
 | LeftForeArm | LeftForeArm | LeftHand | lForeArm | lHand |
-| LeftHand | LeftFingerBase | LeftHandIndex1 | lHand | lMid1 |
+| LeftHand | LeftFingerBase | LeftHandIndex1 (rig end: LeftHandFinger1 head) | lHand | lMid1 |
 
 The CMU hand segment belongs to the zero-offset joint `LeftFingerBase` (CMU's `lhand`; the BVH
 `LeftHand` is CMU's `lwrist`), so its world rotation, which includes `LeftHand`'s, drives the rig
@@ -648,7 +649,10 @@ def load_mocap(
         entry["skipped"] = frames.size == 0
         if frames.size == 0:
             continue
-        R = retarget_matrices(bvh, body, frames, _cache=cache)
+        try:
+            R = retarget_matrices(bvh, body, frames, _cache=cache)
+        except ValueError as e:  # e.g. a joint of the map missing: name the file
+            raise ValueError(f"{path}: {e}") from None
         if drop_implausible:
             keep = plausible(R)
             entry["dropped"] = int((~keep).sum())
