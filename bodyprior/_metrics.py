@@ -31,17 +31,12 @@ __all__ = [
     "pose_geodesic_metric",
 ]
 
-#: Euler order of DSPP poses when `bodyprior.dspp.EULER_ORDER` is not available.
-_FALLBACK_EULER_ORDER = "ZYX"
-
 
 def _default_euler_order() -> str:
-    # The pose convention is owned by the mocap loader; read it lazily so that importing this
-    # module never depends on `bodyprior.dspp` being importable first.
-    try:
-        from .dspp import EULER_ORDER  # type: ignore[attr-defined]
-    except ImportError:
-        return _FALLBACK_EULER_ORDER
+    # The pose convention is owned by the mocap loader; imported lazily so that this generic module
+    # does not depend on the import order of `bodyprior.dspp`.
+    from .dspp._mocap import EULER_ORDER
+
     return EULER_ORDER
 
 

@@ -33,18 +33,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._rotations import EULER_ORDERS, euler_to_matrix, matrix_to_euler
 from .._validate import check_array
+from ._mocap import EULER_ORDER
 
 __all__ = ["joint_limit_violation", "joint_limits"]
-
-_FALLBACK_EULER_ORDER = "ZYX"
 
 
 def _order(order: str | None) -> str:
     if order is None:
-        try:
-            from . import EULER_ORDER  # type: ignore[attr-defined]
-        except ImportError:
-            return _FALLBACK_EULER_ORDER
         return EULER_ORDER
     if order not in EULER_ORDERS:
         raise ValueError(f"`order` must be one of {', '.join(EULER_ORDERS)}, got {order!r}.")
