@@ -90,6 +90,17 @@ from ._evaluate import (
     mean_vertex_error as mean_vertex_error,
     plot_cumulative_curves as plot_cumulative_curves,
 )
+from ._posture import (
+    LaplacianSolver as LaplacianSolver,
+    PostureRig as PostureRig,
+    learn_normalized as learn_normalized,
+    normalize_posture_nh as normalize_posture_nh,
+    normalize_posture_nh_batch as normalize_posture_nh_batch,
+    normalize_posture_wsx as normalize_posture_wsx,
+    normalize_posture_wsx_batch as normalize_posture_wsx_batch,
+    posture_rig as posture_rig,
+    unpose_lbs as unpose_lbs,
+)
 from ._scan import (
     Scan as Scan,
     ScannerConfig as ScannerConfig,
