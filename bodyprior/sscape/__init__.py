@@ -69,6 +69,12 @@ from ._template import (
 from ._template import (
     registration_template as registration_template,
 )
+from ._nrd import (
+    NRDConfig as NRDConfig,
+    NRDResult as NRDResult,
+    nrd as nrd,
+    nrd_batch as nrd_batch,
+)
 from ._serialize import (
     FORMAT_VERSION as FORMAT_VERSION,
 )
