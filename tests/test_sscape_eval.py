@@ -147,3 +147,23 @@ def test_figures_written(tmp_path):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and 5_000 < len(data) < 400_000
     with pytest.raises(ValueError, match="errors_mm"):
         error_colormap_png(p, verts, faces, err[:-1])
+
+
+def test_reconstruction_error_held_out():
+    from _toybody import make_toy_model
+
+    from bodyprior.sscape import reconstruction_error
+
+    model = make_toy_model(4)
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=4)
+    inside = np.asarray(model.shape_vertices(c))
+    rot = np.asarray(bp.axis_angle_to_matrix(jnp.array([0.0, 0.2, 0.4])))
+    moved = inside @ rot.T + np.array([0.3, 0.0, -0.1])
+    outside = inside + 0.01 * rng.normal(size=inside.shape)
+    e = reconstruction_error(model, np.stack([moved, outside]), [0, 2, 4])
+    assert e.shape == (2, 3)
+    assert e[0, 2] < 1e-9 and e[0, 0] > 1e-3  # in the span: exact with all components
+    assert np.all(np.diff(e[0]) <= 1e-12) and e[1, 2] > 5e-3  # noise off the span remains
+    with pytest.raises(ValueError, match="n_components"):
+        reconstruction_error(model, moved[None], [5])

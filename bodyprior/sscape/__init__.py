@@ -95,6 +95,7 @@ from ._evaluate import (
     gt_error as gt_error,
     mean_vertex_error as mean_vertex_error,
     plot_cumulative_curves as plot_cumulative_curves,
+    reconstruction_error as reconstruction_error,
 )
 from ._posture import (
     LaplacianSolver as LaplacianSolver,
@@ -106,6 +107,17 @@ from ._posture import (
     normalize_posture_wsx_batch as normalize_posture_wsx_batch,
     posture_rig as posture_rig,
     unpose_lbs as unpose_lbs,
+)
+from ._bootstrap import (
+    BootstrapPass as BootstrapPass,
+    BootstrapResult as BootstrapResult,
+    GateConfig as GateConfig,
+    GateResult as GateResult,
+    Registration as Registration,
+    body_parts as body_parts,
+    bootstrap as bootstrap,
+    register_sscape_nrd as register_sscape_nrd,
+    registration_gate as registration_gate,
 )
 from ._scan import (
     Scan as Scan,

@@ -48,6 +48,7 @@ __all__ = [
     "gt_error",
     "mean_vertex_error",
     "plot_cumulative_curves",
+    "reconstruction_error",
 ]
 
 #: Default thresholds of the paper's two cumulative plots, millimetres.
@@ -465,3 +466,55 @@ def error_colormap_png(
         np.concatenate(imgs, axis=1), vmin=0.0, vmax=vmax, cmap=cmap, label="error [mm]",
         title=title, path=path,
     )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# Held-out reconstruction (generalization to meshes outside the training set)
+
+
+@eqx.filter_jit
+def _reconstruction_kernel(mean, basis, x, ms: tuple[int, ...]):
+    def one(xi):
+        b = jnp.einsum("kvd,vd->k", basis, xi - mean)
+        out = []
+        for m in ms:
+            r = mean + jnp.tensordot(b[:m], basis[:m], axes=1)
+            out.append(jnp.mean(jnp.linalg.norm(r - xi, axis=-1)))
+        return jnp.stack(out)
+
+    return jax.lax.map(one, x, batch_size=8)
+
+
+def reconstruction_error(
+    model, meshes: Float[Array, "N V 3"], n_components, *, align: bool = True
+) -> np.ndarray:
+    """Generalization to held-out meshes: each mesh is rigidly aligned to the model's mean
+    (Kabsch, no scale) and projected onto the first `M` components; the error is the mean
+    per-vertex distance `D(x, x_hat)` of [`bodyprior.sscape.generalization`][], in metres.
+
+    Unlike the leave-one-out `generalization`, the space is learned once and the meshes are not in
+    its training set (e.g. ground-truth bodies of test scans).
+
+    **Arguments:**
+
+    - `model`: an [`bodyprior.sscape.SScapeModel`][].
+    - `meshes`: `(N, V, 3)` meshes in the model's topology, metres.
+    - `n_components`: one or several `M` in `[0, model.n_components]`.
+    - `align`: rigidly align each mesh to the model mean first.
+
+    **Returns:** NumPy `(N, len(n_components))` errors, metres.
+    """
+    from ._learn import procrustes_align
+
+    dims: dict[str, int] = {}
+    check_array(meshes, "meshes", ("N", model.n_vertices, 3), dims=dims)
+    ms = (int(n_components),) if np.ndim(n_components) == 0 else tuple(int(m) for m in n_components)
+    if not ms or min(ms) < 0 or max(ms) > model.n_components:
+        raise ValueError(
+            f"`n_components` entries must lie in [0, {model.n_components}], got {list(ms)}."
+        )
+    x = jnp.asarray(meshes, model.mean.dtype)
+    if align:
+        x, _ = procrustes_align(x, reference=model.mean)
+    m_max = max(ms)
+    return np.asarray(_reconstruction_kernel(model.mean, model.basis[:m_max], x, ms))

@@ -1,0 +1,322 @@
+"""Bootstrapping the registration with learned shape spaces (Pishchulin et al. 2017, §3.3, §4.5).
+
+Register all scans with S-SCAPE + NRD initialised from a space, keep the registrations that pass a
+quality gate, learn a new space from them and register every scan again from it; five passes in the
+paper (1771, 3253, 3641, 4237, 4301 of 4308 CAESAR scans passed after each).
+
+**The gate** replaces the paper's visual inspection, which it keeps because "low average fitting
+errors do not always correspond to good results, since the fitting of localized areas may be
+inaccurate". [`bodyprior.sscape.registration_gate`][] therefore checks the paper's fitting error
+([`bodyprior.sscape.fitting_error`][], nearest scan point within 50 mm and 60 deg) globally *and*
+per body part, ignoring the hands (the paper does not register them):
+
+1. the fraction of (non-hand) template vertices whose fitting error is at most `threshold_mm`
+   (10 mm) - vertices without a compatible point count as failures - is at least `min_fraction`;
+2. in every body part (the template vertices grouped by their dominant skinning bone, merged into
+   `GateConfig.parts`: head/neck, torso, and each upper arm, forearm, thigh, shank, foot), that
+   fraction is at least `min_part_fraction`, so a misfit arm or leg cannot hide in a good average;
+3. the 99th percentile of the valid errors is at most `max_error_mm` (a maximum-error bound that is
+   robust to the few vertices at scan outliers or hole rims).
+
+The defaults are calibrated on simulated scans (default [`bodyprior.sscape.ScannerConfig`][]): the
+ground-truth meshes themselves, i.e. perfect registrations, reach a 10 mm fraction of 0.93-0.96
+overall and >= 0.80 in the worst part (holes in armpits, crotch, soles and the top of the head make
+vertices there lack a compatible point), with 99th percentiles of 9-14 mm; see
+`experiments/sscape_spaces.py` (`gate_calibration` in its metrics) for the numbers of a run. The
+thresholds leave a margin below those values; a registration with one limb displaced by 3 cm or a
+global 15 mm misalignment fails.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from ._evaluate import fitting_error_batch
+from ._learn import learn
+from ._model import SScapeModel
+from ._template import RegistrationTemplate
+
+__all__ = [
+    "BootstrapPass",
+    "BootstrapResult",
+    "Registration",
+    "GateConfig",
+    "GateResult",
+    "body_parts",
+    "bootstrap",
+    "register_sscape_nrd",
+    "registration_gate",
+]
+
+# Body parts by bone-name substrings (first match wins; order matters: "ForeArm" before "Arm").
+_PARTS = (
+    ("head", ("Head", "Neck")),
+    ("left_forearm", ("LeftForeArm",)),
+    ("right_forearm", ("RightForeArm",)),
+    ("left_upper_arm", ("LeftArm", "LeftShoulder")),
+    ("right_upper_arm", ("RightArm", "RightShoulder")),
+    ("left_shank", ("LeftLeg",)),
+    ("right_shank", ("RightLeg",)),
+    ("left_thigh", ("LeftUpLeg", "LHipJoint")),
+    ("right_thigh", ("RightUpLeg", "RHipJoint")),
+    ("left_foot", ("LeftFoot", "LeftToe")),
+    ("right_foot", ("RightFoot", "RightToe")),
+    ("torso", ("Hips", "Spine", "LowerBack")),
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class GateConfig:
+    """Thresholds of [`bodyprior.sscape.registration_gate`][] (see the module docstring).
+
+    **Fields:** `threshold_mm` (10), `min_fraction` (0.85), `min_part_fraction` (0.6),
+    `max_error_mm` (25), `max_dist` (0.05 m) and `max_angle_deg` (60) of the fitting error.
+    """
+
+    threshold_mm: float = 10.0
+    min_fraction: float = 0.85
+    min_part_fraction: float = 0.6
+    max_error_mm: float = 25.0
+    max_dist: float = 0.05
+    max_angle_deg: float = 60.0
+
+    def __post_init__(self):
+        for name in ("threshold_mm", "max_error_mm", "max_dist"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"`GateConfig.{name}` must be positive, got {v!r}.")
+        for name in ("min_fraction", "min_part_fraction"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"`GateConfig.{name}` must lie in [0, 1], got {v!r}.")
+
+
+class GateResult(NamedTuple):
+    """Per-registration gate outcome (NumPy arrays with a leading scan axis `N`)."""
+
+    accepted: np.ndarray
+    """`(N,)` bool."""
+    fraction: np.ndarray
+    """`(N,)` fraction of non-hand vertices within `threshold_mm`."""
+    worst_part_fraction: np.ndarray
+    """`(N,)` the lowest per-part fraction."""
+    worst_part: np.ndarray
+    """`(N,)` index into `part_names` of that part."""
+    p99_mm: np.ndarray
+    """`(N,)` 99th percentile of the valid non-hand errors, mm."""
+    part_names: tuple[str, ...]
+
+
+def body_parts(tmpl: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Body-part label of every template vertex, `(V,)` int (`-1` = hands, not judged), and the
+    part names (vertices grouped by their dominant skinning bone)."""
+    sw = np.asarray(tmpl.skin_weight)
+    si = np.asarray(tmpl.skin_index)
+    bone = si[np.arange(si.shape[0]), sw.argmax(1)]
+    names = tmpl.joint_names
+    bone_part = np.full(len(names), -1)
+    for j, n in enumerate(names):
+        for p, (_, words) in enumerate(_PARTS):
+            if any(n.startswith(w) or n == w for w in words):
+                bone_part[j] = p
+                break
+    label = bone_part[bone]
+    label[np.asarray(tmpl.hand_mask)] = -1
+    return label, tuple(p for p, _ in _PARTS)
+
+
+def registration_gate(
+    vertices: Float[Array, "N V 3"],
+    scans,
+    tmpl: RegistrationTemplate,
+    *,
+    config: GateConfig = GateConfig(),
+    errors=None,
+) -> GateResult:
+    """Automatic quality gate for registrations (replaces the paper's visual inspection).
+
+    **Arguments:**
+
+    - `vertices`: registrations `(N, V, 3)`, metres, scan frame.
+    - `scans`: the batched [`bodyprior.sscape.Scan`][] they were fitted to.
+    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][] (faces, hands, skinning for parts).
+    - `config`: a [`bodyprior.sscape.GateConfig`][].
+    - `errors`: optional precomputed [`bodyprior.sscape.FittingError`][] (batched) with the same
+      `max_dist`/`max_angle_deg`, to avoid recomputing it.
+
+    **Returns:** a [`bodyprior.sscape.GateResult`][].
+    """
+    if not isinstance(config, GateConfig):
+        raise ValueError(f"`config` must be a GateConfig, got {type(config).__name__}.")
+    if errors is None:
+        errors = fitting_error_batch(
+            vertices, scans, faces=tmpl.faces, max_dist=config.max_dist,
+            max_angle_deg=config.max_angle_deg,
+        )  # fmt: skip
+    e = np.asarray(errors.error_mm, np.float64)
+    ok = np.asarray(errors.valid, bool)
+    if e.ndim != 2 or e.shape[1] != tmpl.n_vertices:
+        raise ValueError(f"`vertices` must have shape (N, {tmpl.n_vertices}, 3), got {e.shape}.")
+    label, names = body_parts(tmpl)
+    judged = label >= 0
+    within = ok & (e <= config.threshold_mm)
+    frac = within[:, judged].mean(1)
+    present = [p for p in range(len(names)) if np.any(label == p)]
+    parts = np.stack([within[:, label == p].mean(1) for p in present], 1)
+    worst = np.asarray(present)[parts.argmin(1)]
+    worst_frac = parts.min(1)
+    p99 = np.array(
+        [np.percentile(ei[oi & judged], 99) if np.any(oi & judged) else np.inf
+         for ei, oi in zip(e, ok)]
+    )  # fmt: skip
+    accepted = (
+        (frac >= config.min_fraction)
+        & (worst_frac >= config.min_part_fraction)
+        & (p99 <= config.max_error_mm)
+    )
+    return GateResult(accepted, frac, worst_frac, worst, p99, names)
+
+
+# --------------------------------------------------------------------------------------------------
+# Registration and the bootstrapping loop
+
+
+class Registration(NamedTuple):
+    """Registrations of a batch of scans (NumPy, leading axis `N`)."""
+
+    vertices: np.ndarray
+    """`(N, V, 3)` registered template meshes, metres, scan frame."""
+    poses: np.ndarray
+    """`(N, J, 3)` axis-angle poses of the S-SCAPE fits (for NH posture normalization)."""
+    similarities: object
+    """Batched `Similarity` of the S-SCAPE fits (model frame -> scan frame)."""
+
+
+def register_sscape_nrd(
+    model: SScapeModel,
+    scans,
+    tmpl: RegistrationTemplate,
+    *,
+    fit_config=None,
+    nrd_config=None,
+    progress: bool = True,
+) -> Registration:
+    """S-SCAPE + NRD registration of a batch of scans: `fit_sscape_batch` with `model`, then `nrd`
+    initialised from each fit (per scan, one jitted call each, compiled once).
+
+    **Returns:** a `Registration` `(vertices, poses, similarities)`.
+    """
+    import jax
+
+    from ._fit import FitConfig, fit_sscape_batch
+    from ._nrd import NRDConfig, nrd
+
+    fit_config = FitConfig() if fit_config is None else fit_config
+    nrd_config = NRDConfig() if nrd_config is None else nrd_config
+    fits = fit_sscape_batch(model, scans, tmpl, config=fit_config, progress=progress, throw=False)
+    n = scans.points.shape[0]
+    out = []
+    for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
+        scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
+        r = nrd(jnp.asarray(fits.vertices[i]), tmpl, scan_i, config=nrd_config, throw=False)
+        out.append(np.asarray(r.vertices))
+    return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
+
+
+class BootstrapPass(NamedTuple):
+    """One pass of [`bodyprior.sscape.bootstrap`][]."""
+
+    model: SScapeModel
+    """The space the pass's registrations were initialised from."""
+    registration: Registration
+    gate: GateResult
+    n_accepted: int
+
+
+class BootstrapResult(NamedTuple):
+    passes: tuple[BootstrapPass, ...]
+    model: SScapeModel
+    """The space learned from the last pass's accepted registrations."""
+
+    @property
+    def accepted_per_pass(self) -> list[int]:
+        return [p.n_accepted for p in self.passes]
+
+
+def _learn_from(meshes, tmpl, n_components):
+    k = int(min(n_components, meshes.shape[0] - 1))
+    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, **tmpl.rig_kwargs())
+
+
+def bootstrap(
+    scans,
+    tmpl: RegistrationTemplate,
+    init_model: SScapeModel,
+    *,
+    n_passes: int = 5,
+    n_components: int = 20,
+    gate: GateConfig = GateConfig(),
+    register: Callable[[SScapeModel, object], Registration] | None = None,
+    fit_config=None,
+    nrd_config=None,
+    progress: bool = True,
+    callback: Callable[[int, BootstrapPass], None] | None = None,
+) -> BootstrapResult:
+    """Bootstrapped registration (paper §3.3, §4.5): `n_passes` rounds of "register every scan from
+    the current space, gate, learn a new space from the accepted registrations".
+
+    Pass 0 registers from `init_model`; pass `r > 0` from the space learned on pass `r - 1`'s
+    accepted registrations (Procrustes + PCA, [`bodyprior.sscape.learn`][], the template's rig,
+    `min(n_components, n_accepted - 1)` components). If fewer than 2 registrations pass, the
+    previous space is kept. Every scan is registered in every pass (rejected ones get another
+    chance from the better space, as in the paper).
+
+    **Arguments:**
+
+    - `scans`: batched [`bodyprior.sscape.Scan`][].
+    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][].
+    - `init_model`: the initial space (learned on a separate, smaller data set).
+    - `n_passes`: passes (paper: 5).
+    - `n_components`: components of the learned spaces.
+    - `gate`: a [`bodyprior.sscape.GateConfig`][].
+    - `register`: `(model, scans) -> Registration`; default
+      [`bodyprior.sscape.register_sscape_nrd`][] with `fit_config`/`nrd_config`.
+    - `progress`: progress bars.
+    - `callback`: called as `callback(r, pass)` after each pass (e.g. to log or checkpoint).
+
+    **Returns:** a [`bodyprior.sscape.BootstrapResult`][] (`accepted_per_pass` is the paper's list).
+    """
+    if isinstance(n_passes, bool) or not isinstance(n_passes, int) or n_passes < 1:
+        raise ValueError(f"`n_passes` must be a positive int, got {n_passes!r}.")
+    if not isinstance(init_model, SScapeModel):
+        raise ValueError(f"`init_model` must be an SScapeModel, got {type(init_model).__name__}.")
+    if init_model.n_vertices != tmpl.n_vertices:
+        raise ValueError(
+            f"`init_model` has {init_model.n_vertices} vertices, the template {tmpl.n_vertices}."
+        )
+    if register is None:
+
+        def register(model, s):
+            return register_sscape_nrd(
+                model, s, tmpl, fit_config=fit_config, nrd_config=nrd_config, progress=progress
+            )
+
+    model = init_model
+    passes = []
+    for r in range(n_passes):  # host loop over passes; each stage is a jitted batched call
+        reg = register(model, scans)
+        g = registration_gate(reg.vertices, scans, tmpl, config=gate)
+        p = BootstrapPass(model, reg, g, int(g.accepted.sum()))
+        passes.append(p)
+        if callback is not None:
+            callback(r, p)
+        if p.n_accepted >= 2:
+            model = _learn_from(reg.vertices[g.accepted], tmpl, n_components)
+    return BootstrapResult(tuple(passes), model)

@@ -1,0 +1,129 @@
+"""Registration gate and the bootstrapping loop (bodyprior/sscape/_bootstrap.py), on the skinned
+tube dressed as a registration template (bones named like the default body's, so parts exist)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from _toybody import make_toy_model
+
+import bodyprior as bp
+from bodyprior.sscape import (
+    GateConfig,
+    Registration,
+    RegistrationTemplate,
+    Scan,
+    body_parts,
+    bootstrap,
+    learn,
+    registration_gate,
+)
+
+NAMES = ("Hips", "Spine", "Neck", "Head")  # torso, torso, head, head along the tube
+
+
+@pytest.fixture(scope="module")
+def toy():
+    model = make_toy_model(4, n_around=16, n_rings=40, n_joints=4)
+    v = np.asarray(model.mean)
+    n = v.shape[0]
+    hand = np.zeros(n, bool)
+    hand[-1] = True  # the top cap vertex plays the hands (never judged)
+    tmpl = RegistrationTemplate(
+        vertices=jnp.asarray(v),
+        faces=model.faces,
+        vertex_map=jnp.arange(n),
+        landmark_index=jnp.arange(4) * 16,
+        landmark_error=jnp.zeros(4),
+        hand_mask=jnp.asarray(hand),
+        head_mask=jnp.asarray(v[:, 2] > 0.7),
+        skin_index=model.skin_indices,
+        skin_weight=model.skin_weights,
+        joint_regressor_indices=model.joint_regressor_indices,
+        joint_regressor_weights=model.joint_regressor_weights,
+        regressor_max_error=0.0,
+        parents=model.parents,
+        joint_names=NAMES,
+        landmark_names=("a", "b", "c", "d"),
+    )
+    rng = np.random.default_rng(0)
+    bodies = np.stack([np.asarray(model.shape_vertices(c)) for c in rng.normal(size=(12, 4))])
+    scans = [_scan(b, model.faces, rng) for b in bodies]
+    batched = Scan(
+        *(jnp.stack([getattr(s, f) for s in scans]) for f in Scan.__dataclass_fields__
+          if f != "landmark_names"),
+        landmark_names=scans[0].landmark_names,
+    )  # fmt: skip
+    return model, tmpl, bodies, batched
+
+
+def _scan(vertices, faces, rng, n_points=16000):
+    pts, fidx, _ = (np.asarray(a) for a in bp.sample_surface(
+        __import__("jax").random.PRNGKey(int(rng.integers(1 << 30))), vertices, faces, n_points
+    ))  # fmt: skip
+    fn = np.asarray(bp.face_normals(vertices, faces))[fidx]
+    pts = pts + 0.001 * rng.standard_normal(pts.shape)
+    lm = vertices[np.arange(4) * 16]
+    return Scan(
+        jnp.asarray(pts), jnp.asarray(fn), jnp.ones(n_points, bool), jnp.asarray(lm),
+        jnp.ones(4, bool), ("a", "b", "c", "d"),
+    )  # fmt: skip
+
+
+def test_body_parts(toy):
+    _, tmpl, _, _ = toy
+    label, names = body_parts(tmpl)
+    assert label[-1] == -1  # hands are not judged
+    used = {names[i] for i in np.unique(label[label >= 0])}
+    assert used == {"torso", "head"}
+
+
+def test_gate_accepts_good_and_rejects_corrupted(toy):
+    _, tmpl, bodies, scans = toy
+    rng = np.random.default_rng(1)
+    good = bodies + 0.002 * rng.standard_normal(bodies.shape)
+    shifted = bodies + np.array([0.015, 0.0, 0.0])  # global 15 mm misalignment
+    part = bodies.copy()
+    label, names = body_parts(tmpl)
+    part[:, label == names.index("head")] += np.array([0.0, 0.03, 0.0])  # one part off by 3 cm
+    for meshes, expect in ((good, True), (shifted, False), (part, False)):
+        g = registration_gate(meshes[:4], _take(scans, 4), tmpl)
+        assert np.all(g.accepted == expect), (g.fraction, g.worst_part_fraction, g.p99_mm)
+    g = registration_gate(part[:4], _take(scans, 4), tmpl)
+    # The local failure hides in the average but not in its part.
+    assert np.all(g.fraction > 0.5) and np.all(g.worst_part_fraction < 0.4)
+    assert {g.part_names[i] for i in g.worst_part} == {"head"}
+    with pytest.raises(ValueError, match="min_fraction"):
+        GateConfig(min_fraction=1.5)
+
+
+def _take(scans, n):
+    import jax
+
+    return jax.tree_util.tree_map(lambda a: a[:n], scans)
+
+
+def test_bootstrap_loop_grows_the_accepted_set(toy):
+    model, tmpl, bodies, scans = toy
+    rng = np.random.default_rng(2)
+    seen = []
+
+    def register(m, s):
+        # Stub registration: a space with more components registers more scans well; the rest are
+        # displaced by 4 cm (as a failed fit would be).
+        seen.append(m.n_components)
+        good = np.arange(len(bodies)) < 3 * (m.n_components + 1)
+        noise = 0.001 * rng.standard_normal(bodies.shape)
+        v = bodies + noise + np.where(good[:, None, None], 0.0, 0.04)
+        return Registration(v, np.zeros((len(bodies), 4, 3)), None)
+
+    init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, **tmpl.rig_kwargs())
+    res = bootstrap(scans, tmpl, init, n_passes=4, n_components=10, register=register)
+    assert res.accepted_per_pass == [6, 12, 12, 12]
+    assert seen == [1, 5, 10, 10]  # each pass registers from the space of the previous one
+    assert res.model.n_components == 10
+    for p in res.passes:
+        assert p.gate.accepted.shape == (12,)
+    with pytest.raises(ValueError, match="n_passes"):
+        bootstrap(scans, tmpl, init, n_passes=0, register=register)
