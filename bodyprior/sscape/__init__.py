@@ -69,6 +69,16 @@ from ._template import (
 from ._template import (
     registration_template as registration_template,
 )
+from ._fit import (
+    FitConfig as FitConfig,
+    FitResult as FitResult,
+    SScapeFit as SScapeFit,
+    compatible_correspondences as compatible_correspondences,
+    fit_similarity as fit_similarity,
+    fit_sscape as fit_sscape,
+    fit_sscape_batch as fit_sscape_batch,
+)
+from ._shard import batch_map as batch_map
 from ._nrd import (
     NRDConfig as NRDConfig,
     NRDResult as NRDResult,

@@ -1,0 +1,165 @@
+"""Running a per-item kernel over a large batch: vmap, sharded over devices, in chunks.
+
+[`bodyprior.sscape.batch_map`][] is the engine of the batched registration entry points
+(`fit_sscape_batch`; NRD and depth fitting can reuse it). The batch is cut into chunks of a fixed
+size (the last one padded by repeating its final item, so every chunk has the same shape and the
+kernel compiles once); each chunk is one jitted call in which `shard_map` over a one-axis
+`jax.sharding.Mesh` (axis `"scan"`) gives every device its slice of the chunk, to which the kernel
+is applied with `jax.vmap`. Items are independent, so there is no communication between devices;
+the replicated arguments (the model) are placed on every device once.
+
+**Multi-GPU node:** nothing to do: all local devices are used by default (`devices=None`).
+
+**`jax.distributed` cluster** (several processes, e.g. one per node): call
+`jax.distributed.initialize(...)` first in every process, then call the batched entry point in every
+process with the *same* full batch (each process may load or simulate all of it, or memory-map it);
+the mesh spans `jax.devices()` (all processes' devices), every process feeds only the slices that
+live on its own devices (`jax.make_array_from_callback`), and the results are gathered to every
+process (`multihost_utils.process_allgather`). This path is written against the documented JAX
+multi-controller API but is not exercised by the test suite (which runs one process with 8 host CPU
+devices, `XLA_FLAGS=--xla_force_host_platform_device_count=8`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm.auto import tqdm
+
+__all__ = ["batch_map"]
+
+_AXIS = "scan"
+
+
+def _leading(tree) -> int:
+    sizes = {x.shape[0] for x in jax.tree_util.tree_leaves(tree) if eqx.is_array_like(x) and np.ndim(x)}
+    if len(sizes) != 1:
+        raise ValueError(
+            f"`batched` leaves must share one leading (batch) axis, got leading sizes {sorted(sizes)}."
+        )
+    return sizes.pop()
+
+
+@eqx.filter_jit
+def _run_vmap(kernel, replicated, chunk):
+    return jax.vmap(kernel, in_axes=(None, 0))(replicated, chunk)
+
+
+@eqx.filter_jit
+def _run_sharded(kernel, mesh, replicated, chunk):
+    rep_dyn, rep_static = eqx.partition(replicated, eqx.is_array)
+    chk_dyn, chk_static = eqx.partition(chunk, eqx.is_array)
+    out_static = []
+
+    def local(rd, cd):
+        out = jax.vmap(kernel, in_axes=(None, 0))(
+            eqx.combine(rd, rep_static), eqx.combine(cd, chk_static)
+        )
+        dyn, static = eqx.partition(out, eqx.is_array)
+        out_static.append(static)
+        return dyn
+
+    spec = PartitionSpec(_AXIS)
+    dyn = jax.shard_map(
+        local, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec, check_vma=False
+    )(rep_dyn, chk_dyn)
+    return eqx.combine(dyn, out_static[0])
+
+
+def _place(tree, sharding):
+    """Puts the array leaves of `tree` (full host values, identical in every process) on `sharding`."""
+
+    def put(x):
+        if not eqx.is_array(x):
+            return x
+        if sharding.is_fully_addressable:
+            return jax.device_put(x, sharding)
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def _to_host(tree):
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if isinstance(x, jax.Array)]
+    if leaves and not all(x.is_fully_addressable for x in leaves):
+        from jax.experimental import multihost_utils
+
+        tree = multihost_utils.process_allgather(tree, tiled=True)
+    return jax.tree_util.tree_map(lambda x: np.asarray(x) if eqx.is_array(x) else x, tree)
+
+
+def batch_map(
+    kernel: Callable,
+    replicated,
+    batched,
+    *,
+    devices: Sequence[jax.Device] | None = None,
+    chunk_size: int | None = None,
+    progress: bool = True,
+    desc: str = "batch",
+):
+    """Applies `kernel(replicated, item)` to every item of a batch: vmap + shard_map + chunks.
+
+    **Arguments:**
+
+    - `kernel`: a pure per-item function `kernel(replicated, item) -> pytree`, jittable; use a
+      module-level function so that repeated calls reuse the compiled chunk.
+    - `replicated`: pytree given whole to every item (e.g. the model); arrays are copied to every
+      device, non-array leaves are static.
+    - `batched`: pytree whose array leaves share a leading batch axis B (`None` leaves allowed).
+    - `devices`: devices of the one-axis mesh (default `jax.devices()`); one device = plain vmap.
+    - `chunk_size`: items per jitted call, rounded up to a multiple of the device count (default
+      4 per device, capped at B rounded up).
+    - `progress`: tqdm progress bar over items.
+    - `desc`: progress-bar label.
+
+    **Returns:** the stacked outputs (leading axis B) with NumPy leaves on the host.
+    """
+    n = _leading(batched)
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("`devices` must name at least one device.")
+    n_dev = len(devices)
+    if chunk_size is None:
+        chunk_size = 4 * n_dev
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"`chunk_size` must be a positive int or None, got {chunk_size!r}.")
+    chunk = min(int(chunk_size), n)
+    chunk = -(-chunk // n_dev) * n_dev
+    n_pad = -(-n // chunk) * chunk
+
+    def pad(x):
+        if not eqx.is_array(x):
+            return x
+        x = np.asarray(x)
+        if n_pad == n:
+            return x
+        return np.concatenate([x, np.repeat(x[-1:], n_pad - n, axis=0)], axis=0)
+
+    batched = jax.tree_util.tree_map(pad, batched)
+    mesh = None
+    if n_dev > 1:
+        mesh = Mesh(np.asarray(devices), (_AXIS,))
+        replicated = _place(replicated, NamedSharding(mesh, PartitionSpec()))
+        item_sharding = NamedSharding(mesh, PartitionSpec(_AXIS))
+
+    outs = []
+    with tqdm(total=n, desc=desc, unit="scan", disable=not progress) as bar:
+        for s in range(0, n_pad, chunk):
+            part = jax.tree_util.tree_map(lambda x: x[s : s + chunk] if eqx.is_array(x) else x, batched)
+            if mesh is None:
+                part = jax.tree_util.tree_map(
+                    lambda x: jax.device_put(x, devices[0]) if eqx.is_array(x) else x, part
+                )
+                out = _run_vmap(kernel, replicated, part)
+            else:
+                out = _run_sharded(kernel, mesh, replicated, _place(part, item_sharding))
+            outs.append(_to_host(out))
+            bar.update(min(chunk, n - s))
+    stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
+    return stacked
