@@ -13,7 +13,8 @@ from bodyprior.dspp._nets import LatentDiscriminator, PointNetDiscriminator
 V = 40  # toy "mesh" size: same code paths as the 6,449-vertex topology, a fraction of the cost
 TINY = dict(latent_dim=4, noise_dim=4, ae_hidden=(16,), generator_hidden=(16,),
             discriminator_hidden=(16,), pointnet_hidden=(8,), pointnet_head_hidden=(8,),
-            geometry_pose_hidden=(16,), geometry_generator_hidden=(16,))  # fmt: skip
+            pointnet_points=16, geometry_pose_hidden=(16,),
+            geometry_generator_hidden=(16,))  # fmt: skip
 
 
 def _cfg(**kw):
@@ -182,6 +183,15 @@ def test_pca_baselines():
             np.testing.assert_allclose(np.abs(c), 3.0, rtol=1e-4)
         else:
             assert np.abs(c).max() <= 3.0 + 1e-4 and abs(c.std() - np.sqrt(3.0)) < 0.1
+    # the top-k (Lanczos) path used for large data agrees with the exact SVD
+    from bodyprior.dspp._sample import _pca_top
+    from bodyprior.sscape._learn import _pca_host
+
+    flat = data.reshape(50, -1)
+    _, c_ex, s_ex = _pca_host(flat)
+    _, c_top, s_top = _pca_top(flat, 6)
+    np.testing.assert_allclose(s_top, s_ex[:6], rtol=1e-9)
+    np.testing.assert_allclose(c_top, c_ex[:6], atol=1e-7)
     # stddev matches the data's variance along the components (unbiased)
     pca = dspp.fit_pca_prior(data, 6)
     proj = (data - data.mean(0)).reshape(50, -1) @ np.asarray(pca.basis, np.float64).T

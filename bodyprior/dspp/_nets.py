@@ -17,6 +17,7 @@ are our choices (all configurable through [`bodyprior.dspp.DSPPConfig`][]):
 | generators (shape, pose) | N(0, I_32) -> 128 -> 128 -> 32 |
 | latent discriminators | 32 -> 128 -> 128 -> 1 (ReLU, SN) |
 | baseline shape disc. | PointNet: per-vertex 3 -> 64 -> 128 shared MLP, max-pool, 128 -> 128 -> 1 |
+| (training input) | 1,024 random vertices per cycle (all vertices in `GeometryGAN.logit`) |
 | baseline pose discriminator | 60 -> 256 -> 256 -> 1 on the Euler angles |
 | baseline generators | N(0, I_32) -> 128 -> 256 -> 3V (or 60): like a generator + a decoder |
 
@@ -200,6 +201,9 @@ class DSPPConfig:
     - `generator_hidden`, `discriminator_hidden`: latent generator / discriminator hidden widths.
     - `pointnet_hidden`, `pointnet_head_hidden`: baseline PointNet shared-MLP widths and the head
       after max-pooling.
+    - `pointnet_points`: vertices the PointNet discriminator sees per training cycle (a fresh random
+      subset each cycle, the same for real and generated shapes; PointNet itself trains on 1,024
+      sampled points). Default 1,024; at least the mesh size = all vertices.
     - `geometry_pose_hidden`: baseline pose-discriminator widths (MLP on Euler angles).
     - `geometry_generator_hidden`: baseline generator widths (noise -> ... -> geometry).
     - `n_steps`: training cycles (paper: 100,000).
@@ -218,6 +222,7 @@ class DSPPConfig:
     discriminator_hidden: tuple[int, ...] = (128, 128)
     pointnet_hidden: tuple[int, ...] = (64, 128)
     pointnet_head_hidden: tuple[int, ...] = (128,)
+    pointnet_points: int = 1024
     geometry_pose_hidden: tuple[int, ...] = (256, 256)
     geometry_generator_hidden: tuple[int, ...] = (128, 256)
     n_steps: int = 100_000
@@ -228,7 +233,7 @@ class DSPPConfig:
 
     def __post_init__(self):
         ints = ("latent_dim", "noise_dim", "n_steps", "batch_size", "steps_per_call",
-                "checkpoint_every")  # fmt: skip
+                "checkpoint_every", "pointnet_points")  # fmt: skip
         for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_steps" else 1):
@@ -370,10 +375,7 @@ class GeometryGAN(eqx.Module):
         return self.config.noise_dim
 
     def _disc_input(self, u: Float[Array, " D"]) -> Array:
-        # u: normalised geometry (x - mean) / scale, flattened.
-        if self.kind == "shape":
-            return (self.mean + self.scale * u.reshape(self.mean.shape) - self.centre) / self.radius
-        return u
+        return geometry_disc_input(self.kind, self.mean, self.scale, self.centre, self.radius, u)
 
     def sample(self, key: PRNGKeyArray) -> Array:
         """One random item, `(V, 3)` metres or `(20, 3)` radians."""
@@ -386,6 +388,15 @@ class GeometryGAN(eqx.Module):
         u = ((jnp.asarray(x).astype(self.mean.dtype) - self.mean) / self.scale).reshape(-1)
         y, _ = self.discriminator(self._disc_input(u), self.disc_state, inference=True)
         return y
+
+
+def geometry_disc_input(kind: str, mean, scale, centre, radius, u: Float[Array, " D"]) -> Array:
+    """Discriminator input of a geometry GAN from normalised geometry `u = (x - mean) / scale`
+    (flattened): vertices relative to the mean shape's centroid in units of its RMS radius `(V, 3)`
+    for shapes, `u` itself for poses."""
+    if kind == "shape":
+        return (mean + scale * u.reshape(mean.shape) - centre) / radius
+    return u
 
 
 def init_aegan(kind: str, mean, scale, config: DSPPConfig, key) -> _AEGANPrior:

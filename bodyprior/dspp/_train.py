@@ -20,6 +20,7 @@ Networks run in float32 whatever `jax_enable_x64` says; data are normalised on t
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import equinox as eqx
@@ -32,7 +33,15 @@ from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
 from .._validate import check_array
-from ._nets import DSPPConfig, GeometryGAN, PosePrior, ShapePrior, init_aegan, init_geometry_gan
+from ._nets import (
+    DSPPConfig,
+    GeometryGAN,
+    PosePrior,
+    ShapePrior,
+    geometry_disc_input,
+    init_aegan,
+    init_geometry_gan,
+)
 
 __all__ = ["TrainLog", "train_shape_prior", "train_pose_prior", "train_geometry_gan"]
 
@@ -156,7 +165,15 @@ def _geometry_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig)
     key, k_idx, k_d, k_g = jr.split(ts.key, 4)
     b = cfg.batch_size
     x = data[jr.randint(k_idx, (b,), 0, data.shape[0])]
-    to_disc = jax.vmap(m._disc_input)
+    # Not the bound method m._disc_input: m's SN state is spent after the discriminator step.
+    disc_in = functools.partial(geometry_disc_input, m.kind, m.mean, m.scale, m.centre, m.radius)
+    to_disc = jax.vmap(disc_in)
+    n_vert = m.mean.shape[0]
+    if m.kind == "shape" and cfg.pointnet_points < n_vert:
+        # PointNet sees a random vertex subset, the same for the real and the generated shapes.
+        key, k_pts = jr.split(key)
+        pts = jr.choice(k_pts, n_vert, (cfg.pointnet_points,), replace=False)
+        to_disc = jax.vmap(lambda u: disc_in(u)[pts])
 
     noise = jr.normal(k_d, (b, cfg.noise_dim), x.dtype)
     u_fake = jax.lax.stop_gradient(jax.vmap(m.generator)(noise))
