@@ -127,3 +127,16 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
         assert p.gate.accepted.shape == (12,)
     with pytest.raises(ValueError, match="n_passes"):
         bootstrap(scans, tmpl, init, n_passes=0, register=register)
+
+
+def test_calibrate_gate_from_reference_registrations(toy):
+    _, tmpl, bodies, scans = toy
+    from bodyprior.sscape import calibrate_gate
+
+    cfg = calibrate_gate(bodies[:4], _take(scans, 4), tmpl)
+    assert 0.8 < cfg.min_fraction < 1.0 and cfg.min_part_fraction < cfg.min_fraction
+    rng = np.random.default_rng(4)
+    good = bodies[:4] + 0.001 * rng.standard_normal(bodies[:4].shape)
+    assert np.all(registration_gate(good, _take(scans, 4), tmpl, config=cfg).accepted)
+    bad = bodies[:4] + np.array([0.012, 0.0, 0.0])  # across the surface
+    assert not np.any(registration_gate(bad, _take(scans, 4), tmpl, config=cfg).accepted)

@@ -125,6 +125,7 @@ from ._bootstrap import (
     GateResult as GateResult,
     Registration as Registration,
     body_parts as body_parts,
+    calibrate_gate as calibrate_gate,
     bootstrap as bootstrap,
     register_sscape_nrd as register_sscape_nrd,
     registration_gate as registration_gate,

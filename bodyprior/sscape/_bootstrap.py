@@ -18,13 +18,14 @@ per body part, ignoring the hands (the paper does not register them):
 3. the 99th percentile of the valid errors is at most `max_error_mm` (a maximum-error bound that is
    robust to the few vertices at scan outliers or hole rims).
 
-The defaults are calibrated on simulated scans (default [`bodyprior.sscape.ScannerConfig`][]): the
-ground-truth meshes themselves, i.e. perfect registrations, reach a 10 mm fraction of 0.93-0.96
-overall and >= 0.80 in the worst part (holes in armpits, crotch, soles and the top of the head make
-vertices there lack a compatible point), with 99th percentiles of 9-14 mm; see
-`experiments/sscape_spaces.py` (`gate_calibration` in its metrics) for the numbers of a run. The
-thresholds leave a margin below those values; a registration with one limb displaced by 3 cm or a
-global 15 mm misalignment fails.
+The paper's error is a vertex-to-nearest-*point* distance, so even a perfect registration has
+errors of the order of the scan's point spacing, and holes (armpits, crotch, soles, top of the
+head) leave vertices without a compatible point; the thresholds therefore depend on the scanner.
+[`bodyprior.sscape.calibrate_gate`][] sets them from registrations known to be good (in simulation
+the ground-truth meshes of a few calibration scans; with real scans a few checked by eye): the
+lowest reference fraction minus 0.05, the lowest reference part fraction minus 0.15, and 1.5 times
+the largest reference 99th percentile. The `GateConfig` defaults are a fixed fallback.
+`experiments/sscape_spaces.py` reports the calibration (`gate` in its metrics).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ __all__ = [
     "GateConfig",
     "GateResult",
     "body_parts",
+    "calibrate_gate",
     "bootstrap",
     "register_sscape_nrd",
     "registration_gate",
@@ -182,6 +184,40 @@ def registration_gate(
         & (p99 <= config.max_error_mm)
     )
     return GateResult(accepted, frac, worst_frac, worst, p99, names)
+
+
+def calibrate_gate(
+    reference_meshes: Float[Array, "N V 3"],
+    scans,
+    tmpl: RegistrationTemplate,
+    *,
+    fraction_margin: float = 0.05,
+    part_margin: float = 0.15,
+    error_factor: float = 1.5,
+    base: GateConfig = GateConfig(),
+) -> GateConfig:
+    """Gate thresholds calibrated on registrations known to be good.
+
+    The paper's fitting error is a vertex-to-nearest-*point* distance, so even a perfect
+    registration has errors of the order of the scan's point spacing (about 10 mm at 19,347 points
+    on an adult body) and holes leave vertices without a compatible point. The gate's thresholds
+    therefore depend on the scanner; this sets them from `reference_meshes` that are correct
+    registrations of `scans` (in simulation: the ground-truth meshes; with real scans: a few
+    registrations checked by eye): `min_fraction` = the lowest reference fraction within
+    `threshold_mm` minus `fraction_margin`, `min_part_fraction` = the lowest reference part fraction
+    minus `part_margin`, `max_error_mm` = the largest reference 99th percentile times
+    `error_factor`. Only the thresholds come from the references; the registrations being judged
+    are never compared with them.
+
+    **Returns:** a [`bodyprior.sscape.GateConfig`][] (other fields from `base`).
+    """
+    g = registration_gate(reference_meshes, scans, tmpl, config=base)
+    return dataclasses.replace(
+        base,
+        min_fraction=float(np.clip(g.fraction.min() - fraction_margin, 0.0, 1.0)),
+        min_part_fraction=float(np.clip(g.worst_part_fraction.min() - part_margin, 0.0, 1.0)),
+        max_error_mm=float(g.p99_mm.max() * error_factor),
+    )
 
 
 # --------------------------------------------------------------------------------------------------
