@@ -1,5 +1,6 @@
 """Virtual laser scanner (holes, noise, outliers, normals, landmarks, density) and scan IO."""
 
+import equinox as eqx
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -338,3 +339,61 @@ def test_read_scan_errors(tmp_path):
         sscape.read_scan(tmp_path / "few.ply", units="m")
     with pytest.raises(ValueError, match=r"\.ply or \.obj"):
         sscape.write_scan(tmp_path / "x.xyz", _scan(rng.uniform(-0.8, 0.8, (200, 3))))
+
+
+# --------------------------------------------------------------------------------------------------
+# Robustness of the registration on hard scans (issue §8)
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tmpl():
+    return sscape.registration_template()
+
+
+@pytest.fixture(scope="module")
+def size_space(tmpl):
+    """A one-component space (body size) that contains the rest template exactly."""
+    v = jnp.asarray(tmpl.vertices, jnp.float64)
+    c = v.mean(0)
+    meshes = jnp.stack([c + (v - c) * s for s in (0.95, 1.0, 1.05)])
+    return sscape.learn(meshes, tmpl.faces, n_components=1, **tmpl.rig_kwargs())
+
+
+@pytest.mark.slow  # ~2 min on an idle 2-core machine (compiles the S-SCAPE fit and NRD)
+def test_registration_survives_hard_scans(subject, tmpl, size_space):
+    """30 % holes, 2 mm noise, 5 % outliers, 10 mm landmark noise, 15 % landmarks missing: the
+    S-SCAPE fit and NRD finish, and stay close to the ground truth (the scanned body is the
+    template). NRD without the head rule (made for CAESAR's dummy heads)."""
+    cfg = sscape.ScannerConfig.hard()
+    scan, truth = sscape.simulate_scan(jr.PRNGKey(5), *subject, cfg)
+    assert 0.7 < float(np.asarray(scan.landmark_mask).mean()) < 0.95
+    fit = sscape.fit_sscape(
+        size_space, scan, tmpl, config=sscape.FitConfig(max_passes=3), throw=False
+    )
+    R = sscape.FitResult
+    assert bool((fit.result == R.successful) | (fit.result == R.max_passes_reached))
+    gt = jnp.asarray(tmpl.vertices, jnp.float64)
+    e_fit = np.asarray(sscape.gt_error(fit.vertices, gt))
+    assert np.isfinite(e_fit).all() and e_fit.mean() < 15.0, e_fit.mean()
+    res = sscape.nrd(
+        fit.vertices, tmpl, scan, config=sscape.NRDConfig(head_rule=False), throw=False
+    )
+    e_nrd = np.asarray(sscape.gt_error(res.vertices, gt))
+    assert np.isfinite(e_nrd).all() and e_nrd.mean() < 12.0, e_nrd.mean()
+    assert (e_nrd < 10.0).mean() > 0.7
+
+
+def test_registration_rejects_bad_scans(subject, tmpl, size_space):
+    scan, _ = sscape.simulate_scan(jr.PRNGKey(6), *subject, sscape.ScannerConfig(n_points=500))
+    mm = eqx.tree_at(
+        lambda s: (s.points, s.landmarks), scan, (scan.points * 1000, scan.landmarks * 1000)
+    )
+    nan = eqx.tree_at(lambda s: s.points, scan, scan.points.at[3, 0].set(jnp.nan))
+    empty = eqx.tree_at(lambda s: s.point_mask, scan, jnp.zeros_like(scan.point_mask))
+    init = jnp.asarray(tmpl.vertices, jnp.float64)
+    for bad, msg in ((mm, "millimetres"), (nan, "NaN"), (empty, "empty")):
+        with pytest.raises(ValueError, match=msg):
+            sscape.fit_sscape(size_space, bad, tmpl)
+        with pytest.raises(ValueError, match=msg):
+            sscape.nrd(init, tmpl, bad)

@@ -1,0 +1,50 @@
+"""experiments/sscape_registration.py end to end at its smallest size (`--tiny`)."""
+
+import importlib.util
+import json
+import os
+
+import pytest
+
+_PATH = os.path.join(os.path.dirname(__file__), "..", "experiments", "sscape_registration.py")
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("sscape_registration", _PATH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.slow
+def test_registration_experiment_tiny(tmp_path):
+    exp = _load()
+    out = tmp_path / "reg"
+    m = exp.main(["--tiny", "--out", str(out), "--seed", "0", "--no-progress"])
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk["nrd_gt_error_mm_mean"] == pytest.approx(m["nrd_gt_error_mm_mean"])
+    for key in (
+        "nrd_gt_error_mm_mean",
+        "nrd_frac_below_10mm",
+        "sscape_only_gt_error_mm_mean",
+        "sscape_nrd_gt_error_mm_mean",
+        "generalization_mm_at_20",
+        "specificity_mm_at_20",
+    ):
+        assert key in m and m[key] == m[key], key  # present and not NaN
+    # Sensible ranges: NRD refines the S-SCAPE fit, and the registrations are real (not garbage).
+    assert m["sscape_nrd_gt_error_mm_mean"] < m["sscape_only_gt_error_mm_mean"]
+    assert m["sscape_nrd_gt_error_mm_mean"] < 15.0
+    assert 0.0 < m["nrd_frac_below_10mm"] <= 1.0
+    assert m["methods"]["sscape_nrd"]["fit_error_mm_mean"] < 5.0
+    # A space learned from registrations generalizes (mm) and is specific, not wildly off.
+    assert 0.5 < m["generalization_mm_at_20"] < 30.0
+    assert 1.0 < m["specificity_mm_at_20"] < 60.0
+    for name in (
+        "cumulative_fit_20mm.png",
+        "cumulative_gt_50mm.png",
+        "mean_error_gt_sscape_nrd.png",
+        "space_quality.png",
+        "scan_coverage.png",
+    ):
+        assert (out / name).stat().st_size > 1000, name
