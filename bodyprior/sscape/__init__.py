@@ -147,3 +147,19 @@ from ._scanio import (
     write_lnd as write_lnd,
     write_scan as write_scan,
 )
+from ._depth import (
+    DEPTH_LANDMARKS as DEPTH_LANDMARKS,
+    DepthCamera as DepthCamera,
+    DepthFit as DepthFit,
+    DepthFitConfig as DepthFitConfig,
+    DepthTruth as DepthTruth,
+    capture_poses as capture_poses,
+    depth_landmarks as depth_landmarks,
+    depth_normals as depth_normals,
+    depth_scan_truth as depth_scan_truth,
+    depth_to_scan as depth_to_scan,
+    fit_depth as fit_depth,
+    kinect_pair as kinect_pair,
+    render_depth as render_depth,
+    simulate_depth_scan as simulate_depth_scan,
+)
