@@ -55,10 +55,10 @@ from bodyprior import dspp  # noqa: E402
 QUICK = dict(n_train=40, n_val=4, n_test=4, n_components=8, prior_steps=100, prior_batch=8,
              coeff_weights=(0.3, 1.0), score_weights=(1.0, 30.0), recon_weights=(0.0, 1e5),
              latent_weights=(0.3, 3.0), latent_score_weights=(0.0,), max_steps=40)  # fmt: skip
-FULL = dict(n_train=1000, n_val=40, n_test=120, n_components=40, prior_steps=4000, prior_batch=16,
-            coeff_weights=(0.1, 0.3, 1.0, 3.0, 10.0), score_weights=(1.0, 10.0, 100.0),
-            recon_weights=(0.0, 1e4, 1e5, 1e6), latent_weights=(0.03, 0.3, 3.0),
-            latent_score_weights=(0.0, 10.0), max_steps=100)  # fmt: skip
+FULL = dict(n_train=1000, n_val=24, n_test=80, n_components=40, prior_steps=4000, prior_batch=16,
+            coeff_weights=(0.1, 0.3, 1.0, 3.0, 10.0), score_weights=(10.0, 100.0),
+            recon_weights=(0.0, 1e5, 1e6), latent_weights=(0.1, 1.0),
+            latent_score_weights=(0.0, 10.0), max_steps=60)  # fmt: skip
 FIT_BATCH = 8  # bodies solved per vectorised step (bounds the memory of the Jacobians)
 
 
@@ -129,6 +129,11 @@ def _fit_latent_batch(prior, idx, targets, sigma: float, mu, sd, lw, sw, max_ste
     return jax.lax.map(one, targets, batch_size=min(FIT_BATCH, targets.shape[0]))
 
 
+def _log(progress: bool, msg: str) -> None:
+    if progress:
+        print(f"[dspp_prior_fit {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
 def _clock() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
@@ -180,11 +185,13 @@ def main(argv=None) -> dict:
     val_t = val[:, lm_idx] + noise[:n_val]
     test_t = test[:, lm_idx] + noise[n_val:]
     timings["data_s"] = _since(t0)
+    _log(progress, f"data ready: {timings['data_s']}")
 
     # ---- models
     t0 = _clock()
     model = bp.sscape.learn(train, faces, n_components=cfg["n_components"], align=False)
     timings["pca_s"] = _since(t0)
+    _log(progress, f"PCA space learned: {timings['pca_s']}")
     t0 = _clock()
     if args.prior is not None:
         prior = dspp.load_prior(args.prior)
@@ -205,6 +212,7 @@ def main(argv=None) -> dict:
             final_d_fake=float(np.mean(log.d_fake[-tail:])),
         )  # fmt: skip
     timings["prior_s"] = _since(t0)
+    _log(progress, f"prior ready: {timings['prior_s']}")
     mu, sd = dspp.latent_statistics(prior, train)
     recon = np.asarray(jax.lax.map(prior.reconstruct, jnp.asarray(test), batch_size=16))
     prior_info["test_reconstruction_error_mm"] = float(
@@ -238,8 +246,10 @@ def main(argv=None) -> dict:
     bar = tqdm(desc="validation grid", disable=not progress, unit="fit-set")
     for cw in cfg["coeff_weights"]:
         v, res, _ = run_space(val_t, cw)
-        grids["pca"].append(dict(coeff_weight=cw, val_error_mm=float(_errors_mm(v, val)[0].mean())))
+        e = float(_errors_mm(v, val)[0].mean())
+        grids["pca"].append(dict(coeff_weight=cw, val_error_mm=e))
         bar.update()
+        _log(progress, f"pca grid point {cw}: {e:.2f} mm")
     best_pca = min(grids["pca"], key=lambda r: r["val_error_mm"])
     cw = best_pca["coeff_weight"]
     for w, wr in itertools.product(cfg["score_weights"], cfg["recon_weights"]):
@@ -249,14 +259,17 @@ def main(argv=None) -> dict:
             dict(coeff_weight=cw, score_weight=w, reconstruction_weight=wr, val_error_mm=e)
         )
         bar.update()
+        _log(progress, f"pca_dspp grid point {w}, {wr}: {e:.2f} mm")
     for lw, sw in itertools.product(cfg["latent_weights"], cfg["latent_score_weights"]):
         v, res, _ = run_latent(val_t, lw, sw)
         e = float(_errors_mm(v, val)[0].mean())
         grids["dspp_latent"].append(dict(latent_weight=lw, score_weight=sw, val_error_mm=e))
         bar.update()
+        _log(progress, f"latent grid point {lw}, {sw}: {e:.2f} mm")
     bar.close()
     chosen = {k: min(g, key=lambda r: r["val_error_mm"]) for k, g in grids.items()}
     timings["validation_s"] = _since(t0)
+    _log(progress, f"validation done: {timings['validation_s']}; chosen {chosen}")
 
     # ---- test (used once)
     t0 = _clock()

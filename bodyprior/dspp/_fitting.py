@@ -34,6 +34,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
@@ -235,7 +236,10 @@ def _check_solver_args(noise_sigma, max_steps, rtol, atol):
 
 
 def _solve(residuals, y0, args, max_steps: int, rtol: float, atol: float, throw: bool):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    # Damped steps by the normal equations (Cholesky): the Jacobians are tall (up to 3V + 3L rows,
+    # at most ~50 columns) and well conditioned by the Tikhonov rows, and this is ~9x cheaper than
+    # the default QR of the 19k x 40 Jacobian (measured, same solution).
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     return optx.least_squares(residuals, solver, y0, args, max_steps=max_steps, throw=throw)
 
 
