@@ -88,8 +88,11 @@ def main(argv=None) -> int:
     u_shape = jnp.asarray(rng.normal(size=(n_data, mean_shape.size)), jnp.float32)
     u_pose = jnp.asarray(rng.normal(size=(n_data, 60)), jnp.float32)
 
-    @eqx.filter_jit
-    def step(ts_s, ts_p, us, up, cfg):
+    # The state is donated: the step updates ~5 M float32 parameters and their Adam moments in
+    # place instead of allocating fresh 10 MB buffers every call (as inside `lax.scan`).
+    @eqx.filter_jit(donate="all-except-first")
+    def step(data, ts_s, ts_p, cfg):
+        us, up = data
         ts_s, rs = _aegan_cycle(ts_s, us, cfg)
         ts_p, rp = _aegan_cycle(ts_p, up, cfg)
         return ts_s, ts_p, rs, rp
@@ -111,7 +114,7 @@ def main(argv=None) -> int:
         state = [ts_s, ts_p]
 
         def one():
-            s, p, rs, rp = step(state[0], state[1], u_shape, u_pose, c)
+            s, p, rs, rp = step((u_shape, u_pose), state[0], state[1], c)
             state[0], state[1] = s, p
             return rs, rp
 
