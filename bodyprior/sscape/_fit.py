@@ -10,7 +10,8 @@ Per scan, in one jitted call:
    `fitPoseShape.m`): each pass fits the pose (+ translation, scale) to the current correspondences,
    recomputes them, fits the shape (+ scale), recomputes them, and stops when the data term changes
    by less than `rtol` (relative) or the mean distance by less than `atol_mm` (humanshape's 1e-3 mm
-   rule), or after `max_passes` passes. The pass loop is a `lax.while_loop`.
+   rule), or after `max_passes` passes. A pass that raises the data term is undone and ends the
+   loop, so the recorded data term never increases. The pass loop is a `lax.while_loop`.
 
 Correspondences (humanshape, sscape.md §2.5): template -> scan only (each model vertex takes a scan
 point; sscape.md describes no scan -> template term at this stage). A pair is compatible when the
@@ -45,9 +46,9 @@ scale refined; joint 0's rotation carries the orientation correction). The fitte
 `similarity.apply(evaluate(model, coeffs, pose)[0])`. Joints named in `frozen_joints` (default: the
 wrists, fingers and thumbs, as humanshape fixes the wrists) stay at their initial rotation.
 
-Solver: optimistix `LevenbergMarquardt` (QR on the damped Jacobian, forward-mode Jacobians: ~100
-pose and ~20 shape unknowns against ~19k residuals). Run it in float64 (`jax_enable_x64`); in float32
-the sub-millimetre convergence tests are meaningless.
+Solver: optimistix `LevenbergMarquardt` with forward-mode Jacobians (~100 pose and ~20 shape
+unknowns against ~20k residuals) and the damped normal equations solved by Cholesky. Float64 is
+required (`jax_enable_x64`): the normal equations square the condition number.
 """
 
 from __future__ import annotations
@@ -58,8 +59,8 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
@@ -180,7 +181,9 @@ class FitConfig:
             if isinstance(self.frozen_joints, str) or not all(
                 isinstance(n, str) for n in self.frozen_joints
             ):
-                raise ValueError("`FitConfig.frozen_joints` must be a tuple of joint names or None.")
+                raise ValueError(
+                    "`FitConfig.frozen_joints` must be a tuple of joint names or None."
+                )
             object.__setattr__(self, "frozen_joints", tuple(self.frozen_joints))
 
 
@@ -326,10 +329,16 @@ def compatible_correspondences(
         raise ValueError(f"`max_dist` must be a positive number of metres, got {max_dist!r}.")
     if not 0.0 < max_angle_deg <= 180.0:
         raise ValueError(f"`max_angle_deg` must lie in (0, 180], got {max_angle_deg!r}.")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
         raise ValueError(f"`chunk_size` must be a positive int, got {chunk_size!r}.")
     verts = jnp.asarray(verts)
-    cfg = FitConfig(max_dist=float(max_dist), max_angle_deg=float(max_angle_deg), chunk_size=int(chunk_size))
+    cfg = FitConfig(
+        max_dist=float(max_dist), max_angle_deg=float(max_angle_deg), chunk_size=int(chunk_size)
+    )
     idx, w, _ = _correspondences(
         verts,
         jnp.asarray(normals, verts.dtype),
@@ -377,7 +386,9 @@ def fit_similarity(template_landmarks: Float[Array, "L 3"], scan: Scan) -> Simil
         if n < 4:
             raise ValueError(f"`scan` must have at least 4 present landmarks, got {n}.")
     src = jnp.asarray(template_landmarks)
-    return _umeyama_masked(src, jnp.asarray(scan.landmarks, src.dtype), jnp.asarray(scan.landmark_mask))
+    return _umeyama_masked(
+        src, jnp.asarray(scan.landmarks, src.dtype), jnp.asarray(scan.landmark_mask)
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -523,7 +534,7 @@ def _fit_one(
             ls = y["ls"]
         return u, pose, t, ls, bad, n
 
-    # -- correspondences and the data term -----------------------------------------------------------
+    # -- correspondences and the data term ---------------------------------------------------
     def correspond(x):
         idx, w, dist = _correspondences(
             x, vertex_normals(x, faces), points, snormals, mask, st.exclude, cfg
@@ -534,7 +545,7 @@ def _fit_one(
         mean_d = jnp.sum(w * d_mm) / jnp.maximum(jnp.sum(w), 1.0)
         return (idx, w), term, mean_d
 
-    # -- stage 1: pose from landmarks ---------------------------------------------------------------
+    # -- stage 1: pose from landmarks -------------------------------------------------------
     if K == 0:
         u0 = jnp.zeros((0,), dtype)
     else:
@@ -557,16 +568,34 @@ def _fit_one(
 
     def body(state):
         i, pose, t, ls, u, corr, hist, dhist, done, bad, steps = state
+        old = (u, pose, t, ls, corr)
         if cfg.schedule == "joint":
-            u, pose, t, ls, bad1, n1 = stage(True, True, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr)
+            u, pose, t, ls, bad1, n1 = stage(
+                True, True, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
+            )
             bad2, n2 = False, 0
         else:
-            u, pose, t, ls, bad1, n1 = stage(True, False, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr)
+            u, pose, t, ls, bad1, n1 = stage(
+                True, False, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
+            )
             corr, _, _ = correspond(mesh(_bounded(u, b), pose, t, ls))
-            u, pose, t, ls, bad2, n2 = stage(False, True, w_lm, True, cfg.shape_steps, u, pose, t, ls, corr)
+            u, pose, t, ls, bad2, n2 = stage(
+                False, True, w_lm, True, cfg.shape_steps, u, pose, t, ls, corr
+            )
         corr, term, mean_d = correspond(mesh(_bounded(u, b), pose, t, ls))
         prev, prev_d = hist[i], dhist[i]
-        done = (jnp.abs(prev - term) <= cfg.rtol * prev) | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
+        # A pass that raised the data term (re-gated correspondences, the point-to-plane blend) is
+        # undone and ends the loop: the recorded data term never increases.
+        worse = term > prev
+        u, pose, t, ls, corr = jax.tree_util.tree_map(
+            lambda a, b_: jnp.where(worse, a, b_), old, (u, pose, t, ls, corr)
+        )
+        term, mean_d = jnp.where(worse, prev, term), jnp.where(worse, prev_d, mean_d)
+        done = (
+            worse
+            | (jnp.abs(prev - term) <= cfg.rtol * prev)
+            | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
+        )
         bad = bad | bad1 | bad2 | ~jnp.isfinite(term)
         hist = hist.at[i + 1].set(term)
         dhist = dhist.at[i + 1].set(mean_d)
@@ -594,8 +623,8 @@ def _fit_one(
     verts, _ = evaluate(model, coeffs, pose, sim)
     rest = shape_vertices(model, coeffs)
     lm_err = jnp.linalg.norm(verts[st.lm_vertex] - lm_target, axis=-1) * _MM
-    finite = jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs)) & jnp.all(
-        jnp.isfinite(pose)
+    finite = (
+        jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs)) & jnp.all(jnp.isfinite(pose))
     )
     result = FitResult.where(done, FitResult.successful, FitResult.max_passes_reached)
     result = FitResult.where(bad, FitResult.solver_failed, result)
@@ -627,7 +656,7 @@ def _fit_single(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_re
 
 
 def _fit_kernel(replicated, item):
-    """Per-scan kernel for the sharded batch map: `replicated` = (model, st, cfg, shape_residual)."""
+    """Per-scan kernel of the batch map; `replicated` = (model, st, cfg, shape_residual)."""
     model, st, cfg, shape_residual = replicated
     scan, init_coeffs, init_pose, init_sim = item
     return _fit_one(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual)
@@ -712,8 +741,10 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
     free = tuple(j for j, n in enumerate(model.joint_names) if n not in frozen)
     if not free:
         raise ValueError("`config.frozen_joints` freezes every joint; at least one must be free.")
-    exclude = np.asarray(tmpl.hand_mask, bool) if config.exclude_hands else np.zeros(
-        tmpl.n_vertices, bool
+    exclude = (
+        np.asarray(tmpl.hand_mask, bool)
+        if config.exclude_hands
+        else np.zeros(tmpl.n_vertices, bool)
     )
     st = _Static(jnp.asarray(vertex), jnp.asarray(known), jnp.asarray(exclude), free)
     model = _as_float64(model)
@@ -816,8 +847,8 @@ def fit_sscape_batch(
     The scans (padded to a common point count, `point_mask` False on padding; see
     [`bodyprior.sscape.pad_scans`][]) are cut into chunks of `chunk_size` scans; each chunk is one
     jitted call (compiled once) whose scan axis is split over `devices` with `jax.sharding`
-    (`Mesh` + `PartitionSpec("scan")`, `shard_map`: every device fits its own scans, no
-    communication); a tqdm bar counts the scans. See [`bodyprior.sscape.batch_map`][] for
+    (`Mesh` + `NamedSharding(mesh, PartitionSpec("scan"))`: every device fits its own scans); a
+    tqdm bar counts the scans. See [`bodyprior.sscape.batch_map`][] for
     multi-process `jax.distributed` clusters.
 
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus

@@ -3,10 +3,12 @@
 [`bodyprior.sscape.batch_map`][] is the engine of the batched registration entry points
 (`fit_sscape_batch`; NRD and depth fitting can reuse it). The batch is cut into chunks of a fixed
 size (the last one padded by repeating its final item, so every chunk has the same shape and the
-kernel compiles once); each chunk is one jitted call in which `shard_map` over a one-axis
-`jax.sharding.Mesh` (axis `"scan"`) gives every device its slice of the chunk, to which the kernel
-is applied with `jax.vmap`. Items are independent, so there is no communication between devices;
-the replicated arguments (the model) are placed on every device once.
+kernel compiles once); each chunk is one jitted call of the `jax.vmap`-ed kernel whose inputs
+are split over a one-axis `jax.sharding.Mesh` (axis `"scan"`, sharding
+`NamedSharding(mesh, PartitionSpec("scan"))`), so XLA's SPMD partitioner gives every device its
+slice of the chunk (outputs are constrained to the same sharding). Items are independent: apart
+from the reduction of the batched loops' stopping predicates there is no communication; the
+replicated arguments (the model) are placed on every device once.
 
 **Multi-GPU node:** nothing to do: all local devices are used by default (`devices=None`).
 
@@ -36,10 +38,13 @@ _AXIS = "scan"
 
 
 def _leading(tree) -> int:
-    sizes = {x.shape[0] for x in jax.tree_util.tree_leaves(tree) if eqx.is_array_like(x) and np.ndim(x)}
+    sizes = {
+        x.shape[0] for x in jax.tree_util.tree_leaves(tree) if eqx.is_array_like(x) and np.ndim(x)
+    }
     if len(sizes) != 1:
         raise ValueError(
-            f"`batched` leaves must share one leading (batch) axis, got leading sizes {sorted(sizes)}."
+            "`batched` leaves must share one leading (batch) axis, got leading sizes "
+            f"{sorted(sizes)}."
         )
     return sizes.pop()
 
@@ -50,28 +55,19 @@ def _run_vmap(kernel, replicated, chunk):
 
 
 @eqx.filter_jit
-def _run_sharded(kernel, mesh, replicated, chunk):
-    rep_dyn, rep_static = eqx.partition(replicated, eqx.is_array)
-    chk_dyn, chk_static = eqx.partition(chunk, eqx.is_array)
-    out_static = []
-
-    def local(rd, cd):
-        out = jax.vmap(kernel, in_axes=(None, 0))(
-            eqx.combine(rd, rep_static), eqx.combine(cd, chk_static)
-        )
-        dyn, static = eqx.partition(out, eqx.is_array)
-        out_static.append(static)
-        return dyn
-
-    spec = PartitionSpec(_AXIS)
-    dyn = jax.shard_map(
-        local, mesh=mesh, in_specs=(PartitionSpec(), spec), out_specs=spec, check_vma=False
-    )(rep_dyn, chk_dyn)
-    return eqx.combine(dyn, out_static[0])
+def _run_sharded(kernel, sharding, replicated, chunk):
+    # The chunk arrives split over the mesh's "scan" axis; XLA's SPMD partitioner keeps the vmapped
+    # batch dimension split (each device computes its own items; the only cross-device traffic is
+    # the reduction of the batched loops' stopping predicates). `shard_map` would state this
+    # directly, but lineax's operator-structure checks fail inside it (jax 0.10 / lineax 0.1.1).
+    out = jax.vmap(kernel, in_axes=(None, 0))(replicated, chunk)
+    dyn, static = eqx.partition(out, eqx.is_array)
+    dyn = jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, sharding), dyn)
+    return eqx.combine(dyn, static)
 
 
 def _place(tree, sharding):
-    """Puts the array leaves of `tree` (full host values, identical in every process) on `sharding`."""
+    """Places the array leaves of `tree` (full host values, same in every process) on `sharding`."""
 
     def put(x):
         if not eqx.is_array(x):
@@ -103,7 +99,7 @@ def batch_map(
     progress: bool = True,
     desc: str = "batch",
 ):
-    """Applies `kernel(replicated, item)` to every item of a batch: vmap + shard_map + chunks.
+    """Applies `kernel(replicated, item)` to every item of a batch: vmap, sharded, in chunks.
 
     **Arguments:**
 
@@ -127,7 +123,11 @@ def batch_map(
     n_dev = len(devices)
     if chunk_size is None:
         chunk_size = 4 * n_dev
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
         raise ValueError(f"`chunk_size` must be a positive int or None, got {chunk_size!r}.")
     chunk = min(int(chunk_size), n)
     chunk = -(-chunk // n_dev) * n_dev
@@ -151,14 +151,16 @@ def batch_map(
     outs = []
     with tqdm(total=n, desc=desc, unit="scan", disable=not progress) as bar:
         for s in range(0, n_pad, chunk):
-            part = jax.tree_util.tree_map(lambda x: x[s : s + chunk] if eqx.is_array(x) else x, batched)
+            part = jax.tree_util.tree_map(
+                lambda x: x[s : s + chunk] if eqx.is_array(x) else x, batched
+            )
             if mesh is None:
                 part = jax.tree_util.tree_map(
                     lambda x: jax.device_put(x, devices[0]) if eqx.is_array(x) else x, part
                 )
                 out = _run_vmap(kernel, replicated, part)
             else:
-                out = _run_sharded(kernel, mesh, replicated, _place(part, item_sharding))
+                out = _run_sharded(kernel, item_sharding, replicated, _place(part, item_sharding))
             outs.append(_to_host(out))
             bar.update(min(chunk, n - s))
     stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
