@@ -55,10 +55,10 @@ from bodyprior import dspp  # noqa: E402
 QUICK = dict(n_train=40, n_val=4, n_test=4, n_components=8, prior_steps=100, prior_batch=8,
              coeff_weights=(0.3, 1.0), score_weights=(1.0, 30.0), recon_weights=(0.0, 1e5),
              latent_weights=(0.3, 3.0), latent_score_weights=(0.0,), max_steps=40)  # fmt: skip
-FULL = dict(n_train=1000, n_val=24, n_test=80, n_components=40, prior_steps=4000, prior_batch=16,
-            coeff_weights=(0.1, 0.3, 1.0, 3.0, 10.0), score_weights=(10.0, 100.0),
-            recon_weights=(0.0, 1e5, 1e6), latent_weights=(0.1, 1.0),
-            latent_score_weights=(0.0, 10.0), max_steps=60)  # fmt: skip
+FULL = dict(n_train=600, n_val=16, n_test=48, n_components=40, prior_steps=4000, prior_batch=16,
+            coeff_weights=(0.3, 1.0, 3.0), score_weights=(10.0, 30.0), recon_weights=(0.0, 1e5),
+            latent_weights=(0.3, 1.0, 3.0, 10.0), latent_score_weights=(0.0, 10.0, 100.0),
+            max_steps=60)  # fmt: skip
 FIT_BATCH = 8  # bodies solved per vectorised step (bounds the memory of the Jacobians)
 
 
