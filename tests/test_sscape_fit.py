@@ -29,8 +29,7 @@ from bodyprior.sscape import (
 N_POINTS = 8000
 CONFIG = FitConfig(max_passes=8)
 
-# The 8-device check runs in its own process (the suite's conftest fixes 2 host devices); it is
-# started by the `setup` fixture and runs next to the single-scan tests.
+# The 8-device check runs in its own process (the suite's conftest fixes 2 host devices).
 _SHARDED = textwrap.dedent(
     """
     import os, pickle, sys
@@ -86,7 +85,7 @@ def _sampled_scan(key, verts, faces, tmpl, missing=(3, 10, 40)):
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup():
     tmpl = bp.sscape.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(jr.PRNGKey(0), 24, body=body, progress=False)
@@ -133,20 +132,8 @@ def setup(tmp_path_factory):
     scan1 = _transform_scan(scan1, sim)
     gt1 = sim.apply(tmpl.restrict(full))
 
-    scans = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), scan0, scan1)
-    d = tmp_path_factory.mktemp("sscape_fit")
-    inp, out = d / "in.pkl", d / "out.pkl"
-    with open(inp, "wb") as f:
-        pickle.dump(dict(model=model, scans=scans, tmpl=tmpl, config=CONFIG), f)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=8")
-    proc = subprocess.Popen(
-        [sys.executable, "-c", _SHARDED, str(inp), str(out)],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
     fits = [fit_sscape(model, s, tmpl, config=CONFIG) for s in (scan0, scan1)]
-    yield dict(
+    return dict(
         tmpl=tmpl,
         model=model,
         scans=(scan0, scan1),
@@ -156,11 +143,7 @@ def setup(tmp_path_factory):
         pose=pose,
         sim=sim,
         fits=fits,
-        proc=proc,
-        out=out,
     )
-    if proc.poll() is None:
-        proc.kill()
 
 
 def test_recovers_body_inside_the_space(setup):
@@ -231,16 +214,25 @@ def test_no_nan_gradients_at_zero_pose(setup):
     assert np.abs(g_pose).max() > 0 and np.abs(g_coeffs).max() > 0
 
 
-def test_sharded_batch_equals_single(setup):
-    """8 host devices (own process): sharded batch == one-device vmapped batch == single fits."""
-    proc = setup["proc"]
-    try:
-        log, _ = proc.communicate(timeout=900)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise
-    assert proc.returncode == 0, log.decode()[-3000:]
-    with open(setup["out"], "rb") as f:
+@pytest.mark.slow
+def test_sharded_batch_equals_single(setup, tmp_path):
+    """8 host devices (own process): sharded batch == one-device vmapped batch == single fits.
+
+    Slow (three compilations of the fit in a fresh process, ~2 min of CPU): `pytest -m slow`.
+    """
+    scans = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *setup["scans"])
+    inp, out_path = tmp_path / "in.pkl", tmp_path / "out.pkl"
+    with open(inp, "wb") as f:
+        pickle.dump(dict(model=setup["model"], scans=scans, tmpl=setup["tmpl"]), f)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=8")
+    proc = subprocess.run(
+        [sys.executable, "-c", _SHARDED, str(inp), str(out_path)],
+        env=env,
+        capture_output=True,
+        timeout=1800,
+    )
+    assert proc.returncode == 0, (proc.stdout + proc.stderr).decode()[-3000:]
+    with open(out_path, "rb") as f:
         out = pickle.load(f)
     tol = (1e-8, 1e-7, 1e-7, 0, 0)  # vertices, coeffs, pose, passes, result
     for ref in (out["one_device"], [np.stack(x) for x in zip(*out["single"])]):
