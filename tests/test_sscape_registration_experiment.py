@@ -32,11 +32,16 @@ def test_registration_experiment_tiny(tmp_path):
         "specificity_mm_at_20",
     ):
         assert key in m and m[key] == m[key], key  # present and not NaN
-    # Sensible ranges: NRD refines the S-SCAPE fit, and the registrations are real (not garbage).
-    assert m["sscape_nrd_gt_error_mm_mean"] < m["sscape_only_gt_error_mm_mean"]
+    # Sensible ranges. NRD refines the S-SCAPE fit by the paper's measure (closer to the scan) and
+    # the S-SCAPE initialisation beats the static template by the ground truth; the ground-truth
+    # error of S-SCAPE + NRD is NOT below S-SCAPE alone on these scans (NRD slides vertices along
+    # the surface; see docs/results_sscape.md), so that is not asserted.
+    meth = m["methods"]
+    assert meth["sscape_nrd"]["fit_error_mm_mean"] < meth["sscape_only"]["fit_error_mm_mean"]
+    assert m["sscape_nrd_gt_error_mm_mean"] < m["nrd_gt_error_mm_mean"]
     assert m["sscape_nrd_gt_error_mm_mean"] < 15.0
     assert 0.0 < m["nrd_frac_below_10mm"] <= 1.0
-    assert m["methods"]["sscape_nrd"]["fit_error_mm_mean"] < 5.0
+    assert meth["sscape_nrd"]["fit_error_mm_mean"] < 5.0
     # A space learned from registrations generalizes (mm) and is specific, not wildly off.
     assert 0.5 < m["generalization_mm_at_20"] < 30.0
     assert 1.0 < m["specificity_mm_at_20"] < 60.0
