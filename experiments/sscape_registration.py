@@ -159,9 +159,7 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
     lm_tmpl = tmpl_v[tmpl.landmark_index]
     out = {"S-SCAPE": np.asarray(fits.vertices)}
     inits = {
-        "NRD": [
-            sscape.fit_similarity(lm_tmpl, _index(scans, i)).apply(tmpl_v) for i in range(n)
-        ],
+        "NRD": [sscape.fit_similarity(lm_tmpl, _index(scans, i)).apply(tmpl_v) for i in range(n)],
         "S-SCAPE + NRD": [jnp.asarray(fits.vertices[i], jnp.float64) for i in range(n)],
     }
     inits["S-SCAPE + NRD CW"] = inits["S-SCAPE + NRD"]
