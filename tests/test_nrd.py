@@ -131,8 +131,11 @@ def test_rounds_recorded(setup):
     assert out.vertices.dtype == jnp.float64 and out.transforms.dtype == jnp.float64
 
 
-def test_identity_when_scan_is_template(setup):
+def test_identity_when_scan_is_template(setup, monkeypatch):
     tmpl = setup[0]
+    traces = []
+    run = _nrd._run
+    monkeypatch.setattr(_nrd, "_run", lambda *a: traces.append(1) or run(*a))
     v = tmpl.vertices
     n_v = v.shape[0]
     pad = N_POINTS - n_v  # same shapes as the other scan: no recompilation
@@ -147,6 +150,7 @@ def test_identity_when_scan_is_template(setup):
         landmark_names=tmpl.landmark_names,
     )
     out = _nrd.nrd(v, tmpl, scan, config=CFG)
+    assert not traces  # another scan of the same shapes: the compiled schedule is reused
     eye = np.broadcast_to(np.eye(3, 4), (n_v, 3, 4))
     np.testing.assert_allclose(np.asarray(out.transforms), eye, atol=1e-9)
     np.testing.assert_allclose(np.asarray(out.vertices), np.asarray(v), atol=1e-10)
@@ -178,7 +182,7 @@ def test_hands_are_data_free(setup):
         ws=jnp.zeros(init.shape[0]),
     )
     X = jnp.broadcast_to(jnp.eye(4, 3), (init.shape[0], 4, 3))
-    g = np.asarray(jax.grad(lambda X: _nrd._energy(X, ph, rnd, prep)[0])(X))
+    g = np.asarray(jax.jit(jax.grad(lambda X: _nrd._energy(X, ph, rnd, prep)[0]))(X))
     assert np.abs(g[hand]).max() == 0.0 and np.abs(g[~hand]).max() > 0
 
 
@@ -190,9 +194,11 @@ def test_energy_gradient_and_normal_equations(getkey):
     tmpl_like = bp.sscape.RegistrationTemplate(
         vertices=jnp.asarray(verts), faces=jnp.asarray(faces), vertex_map=jnp.arange(V),
         landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
-        hand_mask=jnp.zeros(V, bool).at[:3].set(True), head_mask=jnp.zeros(V, bool).at[-5:].set(True),
+        hand_mask=jnp.zeros(V, bool).at[:3].set(True),
+        head_mask=jnp.zeros(V, bool).at[-5:].set(True),
         skin_index=jnp.zeros((V, 1), jnp.int32), skin_weight=jnp.ones((V, 1)),
-        joint_regressor_indices=jnp.zeros((1, 1), jnp.int32), joint_regressor_weights=jnp.ones((1, 1)),
+        joint_regressor_indices=jnp.zeros((1, 1), jnp.int32),
+        joint_regressor_weights=jnp.ones((1, 1)),
         regressor_max_error=0.0, parents=(-1,), joint_names=("root",), landmark_names=("a", "b"),
     )  # fmt: skip
     prep = _nrd._prepare(tmpl_like, 2)
@@ -206,14 +212,14 @@ def test_energy_gradient_and_normal_equations(getkey):
         ws=jr.uniform(getkey(), (V,)) * (1 + (jnp.arange(V) % 3)),
     )
     X = jnp.broadcast_to(jnp.eye(4, 3), (V, 4, 3)) + 0.01 * jr.normal(getkey(), (V, 4, 3))
-    f = lambda X: _nrd._energy(X, ph, rnd, prep)[0]
-    g = jax.grad(f)(X)
+    f = jax.jit(lambda X: _nrd._energy(X, ph, rnd, prep)[0])
+    g = jax.jit(jax.grad(f))(X)
     for _ in range(3):
         d = jr.normal(getkey(), X.shape)
         h = 1e-6
         fd = (f(X + h * d) - f(X - h * d)) / (2 * h)
         np.testing.assert_allclose(float(jnp.sum(g * d)), float(fd), rtol=1e-6)
-    sys = _nrd._system(rnd, ph, prep, coarse=True)
+    sys = jax.jit(lambda r: _nrd._system(r, ph, prep, coarse=True))(rnd)
     np.testing.assert_allclose(
         np.asarray(2 * (sys.mv(X) - sys.rhs)), np.asarray(g), rtol=1e-9, atol=1e-6
     )
@@ -231,8 +237,8 @@ def test_correspondences_match_brute_force(setup):
     prep = _nrd._prepare(tmpl, CFG.n_patches)
     centre = init.mean(0)
     y, q = (init - centre) * 1000, (scan.points - centre) * 1000
-    grid = _nrd._grid_build(q, scan.point_mask, cfg.max_dist_mm / _nrd._REACH)
-    idx, valid = _nrd._correspond(prep, cfg, y, (grid, None), q, scan.normals, scan.point_mask)
+    grids = _nrd._grids(q, scan.point_mask, cfg, prep)
+    idx, valid = _nrd._correspond(prep, cfg, y, grids, q, scan.normals, scan.point_mask)
     ref, w = compatible_correspondences(
         init, bp.vertex_normals(init, tmpl.faces), scan, max_dist=0.03, exclude_mask=tmpl.hand_mask
     )
@@ -246,6 +252,35 @@ def test_correspondences_match_brute_force(setup):
         np.asarray(scan.points)[np.asarray(ref)[ok]] - np.asarray(init)[ok], axis=1
     )
     np.testing.assert_allclose(d_ours, d_ref, atol=1e-6)
+
+    # humanshape's head rule (closest head point within 50 mm in a 30 degree outward cone)
+    cfg = _nrd.NRDConfig()
+    grids = _nrd._grids(q, scan.point_mask, cfg, prep)
+    idx, valid = jax.jit(
+        lambda y: _nrd._correspond(prep, cfg, y, grids, q, scan.normals, scan.point_mask)
+    )(y)
+    Y, Q = np.asarray(y), np.asarray(q)
+    vn = np.asarray(bp.vertex_normals(y, tmpl.faces))
+    a = Y[np.asarray(prep.anchors)]
+    n = prep.plane_sign * np.cross(a[1] - a[0], a[2] - a[0])
+    above = (Q - a[0]) @ n > 0
+    side = (Y - a[0]) @ n / np.linalg.norm(n)
+    heads = [i for i in np.asarray(prep.head_cand) if side[i] > 1e-6]  # off the plane itself
+    assert len(heads) > 50
+    found = 0
+    for i in heads:
+        delta = Q - Y[i]
+        d = np.linalg.norm(delta, axis=1)
+        cone = delta @ vn[i] - np.cos(np.radians(30.0)) * d
+        ok = above & (d <= 50.0) & (cone >= 0)
+        j = int(idx[i])
+        if j >= 0:  # what the grid search picked obeys the rule (up to rounding at the cone edge)
+            assert above[j] and d[j] <= 50.0 + 1e-9 and cone[j] >= -1e-6 * max(d[j], 1.0)
+        if not ok.any():
+            continue
+        found += 1
+        assert j >= 0 and d[j] <= d[ok].min() + 1e-9
+    assert found > 0.3 * len(heads)
 
 
 def test_variants(setup):
@@ -279,6 +314,12 @@ def test_variants(setup):
     )
 
 
+def _replace(scan, **fields):
+    kw = {f: getattr(scan, f) for f in ("points", "normals", "point_mask", "landmarks")}
+    kw.update(landmark_mask=scan.landmark_mask, landmark_names=scan.landmark_names, **fields)
+    return bp.sscape.Scan(**kw)
+
+
 def test_bad_inputs(setup):
     tmpl, truth, scan, init, out = setup
     with pytest.raises(ValueError, match="init_vertices"):
@@ -290,9 +331,9 @@ def test_bad_inputs(setup):
     with pytest.raises(ValueError, match="Scan"):
         _nrd.nrd(init, tmpl, {"points": scan.points})
     with pytest.raises(ValueError, match="millimetres"):
-        _nrd.nrd(init, tmpl, bp.sscape.Scan(scan.points * 1000, scan.normals, scan.point_mask, scan.landmarks, scan.landmark_mask, scan.landmark_names))  # fmt: skip
+        _nrd.nrd(init, tmpl, _replace(scan, points=scan.points * 1000))
     with pytest.raises(ValueError, match="empty"):
-        _nrd.nrd(init, tmpl, bp.sscape.Scan(scan.points, scan.normals, scan.point_mask & False, scan.landmarks, scan.landmark_mask, scan.landmark_names))  # fmt: skip
+        _nrd.nrd(init, tmpl, _replace(scan, point_mask=scan.point_mask & False))
     with pytest.raises(ValueError, match="batch"):
         _nrd.nrd_batch(init[None], tmpl, scan)
     with pytest.raises(ValueError, match="smooth_weight"):
