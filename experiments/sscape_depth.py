@@ -44,6 +44,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
@@ -89,6 +90,23 @@ SETTINGS = {
     "quick": Setting(60, (30, 60), (5, 10), ("none", "nh", "wsx"), 2, 2048, 20, FIT),
     "full": Setting(1000, (100, 1000), (10, 20, 50), ("none", "nh", "wsx"), 2, 2048, 50, FIT),
 }
+
+
+def _pad(model, k_max: int):
+    """The model with zero components appended up to `k_max` (zero basis and stddev: the shape
+    space is unchanged; the fitter's extra unknowns have zero Jacobian columns and stay at 0 under
+    the Levenberg-Marquardt damping). Every space then has the same array shapes, so the fitter
+    compiles once for all component counts instead of once per count."""
+    extra = k_max - model.n_components
+    if extra <= 0:
+        return model
+    z = jnp.zeros((extra,), model.stddev.dtype)
+    basis = jnp.concatenate([model.basis, jnp.zeros((extra, *model.basis.shape[1:]))], 0)
+    return eqx.tree_at(
+        lambda m: (m.basis, m.stddev, m.explained_variance),
+        model,
+        (basis, jnp.concatenate([model.stddev, z]), jnp.concatenate([model.explained_variance, z])),
+    )
 
 
 def _rest_error(fit_rest, scale, true_rest):
@@ -241,6 +259,8 @@ def main(argv=None):
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--budget-s", type=float, default=0.0,
+                    help="start no new fit after this many seconds (0 = no limit)")  # fmt: skip
     args = ap.parse_args(argv)
     mode = ("tiny" if args.tiny else "quick") if args.quick else "full"
     st = SETTINGS[mode]
@@ -261,11 +281,18 @@ def main(argv=None):
     t_learn = time.perf_counter() - t0
 
     results, fits_kept, fit_times = [], {}, []
-    jobs = [(norm, n, model, k) for norm, n, model in spaces for k in st.components
-            if k <= model.n_components]  # fmt: skip
+    # Jobs ordered so that a time-limited run covers every space at the middle component count
+    # first; the baseline's components are capped at its training size - 1.
+    order = sorted(st.components, key=lambda k: (k != 20, k))
+    jobs = [(norm, n, model, k) for k in order for norm, n, model in spaces]
+    k_max = max(st.components)
     bar = tqdm(total=len(jobs) * len(subjects), desc="depth fits", disable=not progress)
+    skipped = []
     for norm, n, model, k in jobs:
-        m = truncate(model, k)
+        if args.budget_s and time.perf_counter() - t_start > args.budget_s:
+            skipped.append(dict(norm=norm, n_train=n, n_components=k))
+            continue
+        m = _pad(truncate(model, min(k, model.n_components)), k_max)
         rest_err, posed_err, rounds, codes = [], [], [], []
         for s, subj in enumerate(subjects):
             t0 = time.perf_counter()
@@ -285,6 +312,7 @@ def main(argv=None):
         curve = cumulative_curve(re, THRESHOLDS)
         results.append(dict(
             norm=norm, n_train=n, n_components=k,
+            n_components_used=min(k, model.n_components),
             rest_error_mm_mean=float(re.mean()), rest_error_mm_median=float(np.median(re)),
             rest_error_mm_per_subject=[float(e.mean()) for e in re],
             rest_frac_below_10mm=float(curve[10]), rest_frac_below_20mm=float(curve[20]),
@@ -303,7 +331,7 @@ def main(argv=None):
     _plot_fig5(os.path.join(args.out, "fig5_depth_cumulative.png"), results, st)
     _plot_depth(os.path.join(args.out, "depth_images.png"), subjects[0], cams)
     n_all, k_fig = max(st.sizes), (20 if 20 in st.components else st.components[-1])
-    ref = fits_kept[("none", n_all, k_fig, 0)]
+    ref = fits_kept.get(("none", n_all, k_fig, 0), next(iter(fits_kept.values())))
     _plot_fitted(os.path.join(args.out, "fitted_body.png"), ref, subjects[0], faces)
     fig6 = {}
     for s in range(min(2, len(subjects))):
@@ -332,7 +360,7 @@ def main(argv=None):
                     max_incidence_deg=80.0),  # fmt: skip
         depth_points=[[int(np.asarray(c.point_mask).sum()) for c in s["scans"]] for s in subjects],
         valid_pixels=[[int((d > 0).sum()) for d in s["depth"]] for s in subjects],
-        config=repr(st.config), spaces=results, fig6_mean_error_mm=fig6,
+        config=repr(st.config), spaces=results, skipped_for_time=skipped, fig6_mean_error_mm=fig6,
         timing_s=dict(capture=t_capture, learn=t_learn, learn_per_space=learn_times,
                       fit_first=fit_times[0], fit_median=float(np.median(fit_times)),
                       fits=len(fit_times), total=time.perf_counter() - t_start),  # fmt: skip
