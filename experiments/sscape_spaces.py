@@ -54,11 +54,12 @@ from bodyprior.sscape._fit import FitConfig  # noqa: E402
 SIZES = {
     "quick": dict(n_init=12, n_boot=6, n_test=2, n_passes=2, points=6449, fit_passes=2,
                   pool=60, sizes=(10, 20, 40), n_eval=10, n_posture=16, spec_samples=200,
-                  spec_samples_big=200, components=(1, 2, 3, 5), n_init_components=6),
+                  spec_samples_big=200, spec_samples_posture=200, components=(1, 2, 3, 5),
+                  n_init_components=6),
     "full": dict(n_init=30, n_boot=12, n_test=6, n_passes=3, points=9674, fit_passes=3,
                  pool=1100, sizes=(50, 100, 1000), n_eval=100, n_posture=200,
-                 spec_samples=10000, spec_samples_big=1000, components=(1, 2, 3, 5, 8, 10, 15, 20),
-                 n_init_components=20),
+                 spec_samples=10000, spec_samples_big=200, spec_samples_posture=500,
+                 components=(1, 2, 3, 5, 8, 10, 15, 20), n_init_components=20),
 }  # fmt: skip
 
 
@@ -354,7 +355,7 @@ def main(argv=None):
     gmodels = {}
     for name, meshes in gsets.items():
         model, _, m = space_measures(
-            meshes, tmpl.faces, rig, comps, pn_key, size["spec_samples_big"]
+            meshes, tmpl.faces, rig, comps, pn_key, size["spec_samples_posture"]
         )
         err = []
         for a, b in zip(meshes, pool_rest):
