@@ -6,7 +6,7 @@ body (the S-SCAPE template's vertex count; a vertex subset of the full mesh, so 
 the full topology restrict to it exactly with `vertices[..., vertex_map, :]`).
 
 The vertex joint regressor of the full body does not carry over to a vertex subset, so it is refitted
-here on the host, the same way the asset builder fits it (sum-to-one weights over the nearest template
+here on the host with the asset builder's `joint_regressor` (sum-to-one weights over the nearest template
 vertices, least squares over sampled bodies whose joints are known exactly from the phenotype basis).
 """
 
@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-import scipy.linalg
 from jaxtyping import Array, Bool, Float, Int
 
 # Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape does).
@@ -90,24 +89,12 @@ class RegistrationTemplate(eqx.Module):
         return jnp.asarray(full_vertices)[..., self.vertex_map, :]
 
 
-def _fit_regressor(template: np.ndarray, point: np.ndarray, verts: np.ndarray, points: np.ndarray, k: int):
-    """Sum-to-one weights over the k vertices nearest to `point` reproducing `points` over `verts`
-    (least squares in the null space of the sum constraint, lightly ridged)."""
-    nn = np.argsort(np.linalg.norm(template - point, axis=1))[:k]
-    A = np.transpose(verts[:, nn], (0, 2, 1)).reshape(-1, k)
-    b = points.reshape(-1)
-    w0 = np.full(k, 1.0 / k)
-    N = scipy.linalg.null_space(np.ones((1, k)))
-    Az = A @ N
-    z = np.linalg.solve(Az.T @ Az + 1e-6 * np.eye(k - 1), Az.T @ (b - A @ w0))
-    return nn.astype(np.int32), w0 + N @ z
-
-
 @functools.lru_cache(maxsize=4)
 def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplate:
     from .._body import load_default_body, rest_shape
     from .._population import sample_phenotypes
     from ..assets._decimate import load_decimated
+    from ..assets.build import joint_regressor
 
     body = load_default_body(rig)
     full_template = np.asarray(body.template, np.float64)
@@ -144,7 +131,7 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
     reg_i, reg_w, err = [], [], []
     rest_joints = np.asarray(body.rig.head_template, np.float64)
     for j in range(body.n_joints):
-        i, w = _fit_regressor(template, rest_joints[j], verts[:n_fit], joints[:n_fit, j], k)
+        i, w = joint_regressor(template, rest_joints[j], verts[:n_fit], joints[:n_fit, j], k=k)
         e = np.linalg.norm(np.einsum("k,skc->sc", w, verts[n_fit:, i]) - joints[n_fit:, j], axis=1)
         reg_i.append(i)
         reg_w.append(w)
