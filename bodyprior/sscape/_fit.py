@@ -840,16 +840,18 @@ def fit_sscape_batch(
     devices=None,
     chunk_size: int | None = None,
     progress: bool = True,
+    strategy: str | None = None,
     throw: bool = True,
 ) -> SScapeFit:
-    """Fits many scans: `vmap` of the single-scan fit, sharded over devices, in chunks.
+    """Fits many scans: `vmap` of the single-scan fit, spread over devices, in chunks.
 
     The scans (padded to a common point count, `point_mask` False on padding; see
-    [`bodyprior.sscape.pad_scans`][]) are cut into chunks of `chunk_size` scans; each chunk is one
-    jitted call (compiled once) whose scan axis is split over `devices` with `jax.sharding`
-    (`Mesh` + `NamedSharding(mesh, PartitionSpec("scan"))`: every device fits its own scans); a
-    tqdm bar counts the scans. See [`bodyprior.sscape.batch_map`][] for
-    multi-process `jax.distributed` clusters.
+    [`bodyprior.sscape.pad_scans`][]) are cut into chunks of `chunk_size` scans; every device fits
+    its own slice of each chunk: on accelerators one jitted call per chunk whose scan axis is split
+    over `devices` with `jax.sharding` (`Mesh` + `NamedSharding(mesh, PartitionSpec("scan"))`,
+    compiled once), on CPUs one call per device (compiled once per device; the partitioned program
+    deadlocks on host CPU devices). A tqdm bar counts the scans. See
+    [`bodyprior.sscape.batch_map`][] (`strategy`) and multi-process `jax.distributed` clusters.
 
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus
 
@@ -859,6 +861,7 @@ def fit_sscape_batch(
     - `chunk_size`: scans per jitted call, rounded up to a multiple of the device count (default:
       4 per device, at most B rounded up).
     - `progress`: show a progress bar.
+    - `strategy`: `"spmd"`, `"per_device"` or `None` (by platform); see `batch_map`.
     - `throw`: raise a `RuntimeError` naming the failed scans (after all chunks ran).
 
     **Returns:** a batched [`bodyprior.sscape.SScapeFit`][] (leading axis B, NumPy-backed leaves on
@@ -875,6 +878,7 @@ def fit_sscape_batch(
         chunk_size=chunk_size,
         progress=progress,
         desc="fitting S-SCAPE",
+        strategy=strategy,
     )
     if throw:
         failed = np.flatnonzero(np.asarray(_failed(fits.result)))

@@ -1,18 +1,27 @@
-"""Running a per-item kernel over a large batch: vmap, sharded over devices, in chunks.
+"""Running a per-item kernel over a large batch: vmap, spread over devices, in chunks.
 
 [`bodyprior.sscape.batch_map`][] is the engine of the batched registration entry points
 (`fit_sscape_batch`; NRD and depth fitting can reuse it). The batch is cut into chunks of a fixed
 size (the last one padded by repeating its final item, so every chunk has the same shape and the
-kernel compiles once); each chunk is one jitted call of the `jax.vmap`-ed kernel whose inputs
-are split over a one-axis `jax.sharding.Mesh` (axis `"scan"`, sharding
-`NamedSharding(mesh, PartitionSpec("scan"))`), so XLA's SPMD partitioner gives every device its
-slice of the chunk (outputs are constrained to the same sharding). Items are independent: apart
-from the reduction of the batched loops' stopping predicates there is no communication; the
-replicated arguments (the model) are placed on every device once.
+kernel compiles once per device); every device fits its own slice of each chunk with the
+`jax.vmap`-ed kernel. Items are independent. Two ways to spread a chunk (`strategy`):
+
+- `"spmd"` (default on accelerators): one jitted call whose inputs are split over a one-axis
+  `jax.sharding.Mesh` (axis `"scan"`, `NamedSharding(mesh, PartitionSpec("scan"))`); XLA's SPMD
+  partitioner gives every device its slice and compiles once. The partitioned program all-reduces
+  the batched loops' stopping predicates in every iteration of every (nested) while loop.
+- `"per_device"` (default when all devices are CPUs): every device gets its slice as its own call
+  of the same jitted vmap, dispatched asynchronously so the devices run concurrently; no
+  collectives at all, one compilation per device. On host CPU devices the `"spmd"` program of the
+  S-SCAPE fit deadlocked (jax 0.10.2, 2 host devices on 2 cores, chunks of 12 scans: every XLA
+  worker thread idle, the caller waiting in `block_until_ready`; neither the GSPMD partitioner,
+  `--xla_cpu_multi_thread_eigen=false` nor synchronous CPU dispatch avoided it). `shard_map`
+  would state "no communication" directly, but lineax rejects the sharded abstract values inside
+  it (lineax issue #185).
 
 **Multi-GPU node:** nothing to do: all local devices are used by default (`devices=None`).
 
-**`jax.distributed` cluster** (several processes, e.g. one per node): call
+**`jax.distributed` cluster** (several processes, e.g. one per node; `"spmd"` only): call
 `jax.distributed.initialize(...)` first in every process, then call the batched entry point in every
 process with the *same* full batch (each process may load or simulate all of it, or memory-map it);
 the mesh spans `jax.devices()` (all processes' devices), every process feeds only the slices that
@@ -98,6 +107,7 @@ def batch_map(
     chunk_size: int | None = None,
     progress: bool = True,
     desc: str = "batch",
+    strategy: str | None = None,
 ):
     """Applies `kernel(replicated, item)` to every item of a batch: vmap, sharded, in chunks.
 
@@ -113,6 +123,9 @@ def batch_map(
       4 per device, capped at B rounded up).
     - `progress`: tqdm progress bar over items.
     - `desc`: progress-bar label.
+    - `strategy`: `"spmd"` (one partitioned program over a device mesh), `"per_device"` (one call
+      per device, no collectives; single process only) or `None` (`"per_device"` when every
+      device is a CPU, else `"spmd"`); see the module docstring.
 
     **Returns:** the stacked outputs (leading axis B) with NumPy leaves on the host.
     """
@@ -121,6 +134,15 @@ def batch_map(
     if not devices:
         raise ValueError("`devices` must name at least one device.")
     n_dev = len(devices)
+    if strategy is None:
+        strategy = "per_device" if all(d.platform == "cpu" for d in devices) else "spmd"
+    if strategy not in ("spmd", "per_device"):
+        raise ValueError(f"`strategy` must be 'spmd', 'per_device' or None, got {strategy!r}.")
+    if strategy == "per_device" and any(d.process_index != jax.process_index() for d in devices):
+        raise ValueError(
+            "`strategy='per_device'` runs in one process: `devices` must be this process's "
+            "devices (use strategy='spmd' across a jax.distributed cluster)."
+        )
     if chunk_size is None:
         chunk_size = 4 * n_dev
     if (
@@ -143,10 +165,18 @@ def batch_map(
 
     batched = jax.tree_util.tree_map(pad, batched)
     mesh = None
-    if n_dev > 1:
+    if n_dev > 1 and strategy == "spmd":
         mesh = Mesh(np.asarray(devices), (_AXIS,))
         replicated = _place(replicated, NamedSharding(mesh, PartitionSpec()))
         item_sharding = NamedSharding(mesh, PartitionSpec(_AXIS))
+    else:
+        # one copy of the replicated arguments per device, placed once
+        on_device = [
+            jax.tree_util.tree_map(lambda x: jax.device_put(x, d) if eqx.is_array(x) else x,
+                                   replicated)
+            for d in devices
+        ]  # fmt: skip
+    per = chunk // n_dev
 
     outs = []
     with tqdm(total=n, desc=desc, unit="scan", disable=not progress) as bar:
@@ -155,13 +185,27 @@ def batch_map(
                 lambda x: x[s : s + chunk] if eqx.is_array(x) else x, batched
             )
             if mesh is None:
-                part = jax.tree_util.tree_map(
-                    lambda x: jax.device_put(x, devices[0]) if eqx.is_array(x) else x, part
-                )
-                out = _run_vmap(kernel, replicated, part)
+                # dispatch every device's slice before waiting for any (asynchronous dispatch)
+                pieces = []
+                for i, d in enumerate(devices):
+                    sl = jax.tree_util.tree_map(
+                        lambda x: jax.device_put(x[i * per : (i + 1) * per], d)
+                        if eqx.is_array(x)
+                        else x,
+                        part,
+                    )
+                    pieces.append(_run_vmap(kernel, on_device[i], sl))
+                out = _concat([_to_host(o) for o in pieces])
             else:
                 out = _run_sharded(kernel, item_sharding, replicated, _place(part, item_sharding))
             outs.append(_to_host(out))
             bar.update(min(chunk, n - s))
-    stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
-    return stacked
+    return jax.tree_util.tree_map(lambda x: x[:n] if eqx.is_array(x) else x, _concat(outs))
+
+
+def _concat(trees):
+    if len(trees) == 1:
+        return trees[0]
+    return jax.tree_util.tree_map(
+        lambda *xs: np.concatenate(xs, axis=0) if eqx.is_array(xs[0]) else xs[0], *trees
+    )
