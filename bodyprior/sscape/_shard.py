@@ -64,6 +64,13 @@ def _run_vmap(kernel, replicated, chunk):
 
 
 @eqx.filter_jit
+def _run_map(kernel, replicated, chunk):
+    # One item after another: each runs its own number of loop iterations (a vmapped while loop
+    # runs every item until the slowest one stops, masked), which on a CPU is the faster choice.
+    return jax.lax.map(lambda item: kernel(replicated, item), chunk)
+
+
+@eqx.filter_jit
 def _run_sharded(kernel, sharding, replicated, chunk):
     # The chunk arrives split over the mesh's "scan" axis; XLA's SPMD partitioner keeps the vmapped
     # batch dimension split (each device computes its own items; the only cross-device traffic is
@@ -177,6 +184,8 @@ def batch_map(
             for d in devices
         ]  # fmt: skip
     per = chunk // n_dev
+    # per device: items one after another on CPUs (see `_run_map`), vmapped elsewhere
+    run = _run_map if all(d.platform == "cpu" for d in devices) else _run_vmap
 
     outs = []
     with tqdm(total=n, desc=desc, unit="scan", disable=not progress) as bar:
@@ -194,7 +203,7 @@ def batch_map(
                         else x,
                         part,
                     )
-                    pieces.append(_run_vmap(kernel, on_device[i], sl))
+                    pieces.append(run(kernel, on_device[i], sl))
                 out = _concat([_to_host(o) for o in pieces])
             else:
                 out = _run_sharded(kernel, item_sharding, replicated, _place(part, item_sharding))
