@@ -99,18 +99,13 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._topology import Topology
 from .._validate import check_array
+from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
 from ._template import RegistrationTemplate
 
 __all__ = ["NRDConfig", "NRDResult", "nrd", "nrd_batch"]
 
 _MM = 1000.0  # metres -> millimetres
-# Grid axes are clamped to this many cells (keys stay < 2^31 in int32); clamping only merges far
-# cells, which adds candidates but never loses one, so the radius search stays exact.
-_GRID_AXIS = 1024
-# Cells per search radius: a radius-r search scans the (2 _REACH + 1)³ cells of size r / _REACH
-# around the query (cube side 2.5 r instead of 3 r for cells of size r).
-_REACH = 2
 
 
 # --------------------------------------------------------------------------------------------------
@@ -384,109 +379,6 @@ def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> _Prep:
 # Exact radius search on a uniform grid of the scan points
 
 
-class _Grid(eqx.Module):
-    lo: Float[Array, " 3"]
-    cell: Float[Array, ""]
-    dims: Int[Array, " 3"]
-    skey: Int[Array, " P"]  # sorted cell keys (masked points last)
-    order: Int[Array, " P"]  # point index of each sorted key
-
-
-def _grid_build(points: Float[Array, "P 3"], mask: Bool[Array, " P"], cell) -> _Grid:
-    inf = jnp.asarray(jnp.inf, points.dtype)
-    cell = jnp.asarray(cell, points.dtype)
-    # One empty cell of margin below and above every point, so that the clamped three-cell rows of
-    # a query outside the grid still cover every point within one cell of it.
-    lo = jnp.min(jnp.where(mask[:, None], points, inf), axis=0) - cell
-    ijk = jnp.clip(jnp.floor((points - lo) / cell), 0, _GRID_AXIS - 2).astype(jnp.int32)
-    dims = jnp.max(jnp.where(mask[:, None], ijk, 0), axis=0) + 2
-    key = ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
-    key = jnp.where(mask, key, jnp.iinfo(jnp.int32).max)
-    order = jnp.argsort(key).astype(jnp.int32)
-    return _Grid(lo, cell, dims.astype(jnp.int32), key[order], order)
-
-
-def _rows(reach: int) -> np.ndarray:
-    r = range(-reach, reach + 1)
-    return np.array([(dy, dz) for dz in r for dy in r], np.int32)
-
-
-# Candidate slots examined per step of the search loop (bounds memory, not the result).
-_CHUNK = 1 << 15
-
-
-def _grid_search(
-    grid: _Grid, centres: Float[Array, "Q 3"], active: Bool[Array, " Q"], rule, reach: int
-) -> Int[Array, " Q"]:
-    """For each active query, the point minimising `rule`'s squared distance among the points it
-    accepts, searched in the `(2 reach + 1)³` cells around `centres[q]`; `-1` where there is none.
-    Exact when every accepted point lies within `reach` cells of the centre.
-
-    The candidate runs of all queries (one contiguous run of sorted keys per row of cells) are laid
-    end to end and processed `_CHUNK` slots at a time, so the work is the total number of
-    candidates, not queries x the longest run."""
-    nq = centres.shape[0]
-    if nq == 0:
-        return jnp.zeros((0,), jnp.int32)
-    ijk = jnp.clip(jnp.floor((centres - grid.lo) / grid.cell), 0, grid.dims - 1).astype(jnp.int32)
-    rows = jnp.asarray(_rows(reach))
-    nr = rows.shape[0]
-    y = ijk[:, 1:2] + rows[None, :, 0]
-    z = ijk[:, 2:3] + rows[None, :, 1]
-    inside = (y >= 0) & (y < grid.dims[1]) & (z >= 0) & (z < grid.dims[2]) & active[:, None]
-    base = grid.dims[0] * (y + grid.dims[1] * z)
-    x0 = jnp.maximum(ijk[:, 0:1] - reach, 0)
-    x1 = jnp.minimum(ijk[:, 0:1] + reach, grid.dims[0] - 1)
-    start = jnp.searchsorted(grid.skey, base + x0, side="left").astype(jnp.int32)
-    end = jnp.searchsorted(grid.skey, base + x1, side="right").astype(jnp.int32)
-    count = jnp.where(inside, end - start, 0).reshape(-1)
-    start = start.reshape(-1)
-    cum = jnp.cumsum(count)  # inclusive; lane l holds slots [cum[l] - count[l], cum[l])
-    total = cum[-1]
-    last = grid.order.shape[0] - 1
-    slots = jnp.arange(_CHUNK, dtype=jnp.int32)
-
-    def body(state):
-        k, best, best_d2 = state
-        s = k * _CHUNK + slots
-        lane = jnp.minimum(jnp.searchsorted(cum, s, side="right"), cum.shape[0] - 1)
-        pi = grid.order[jnp.minimum(start[lane] + s - (cum[lane] - count[lane]), last)]
-        qi = lane // nr
-        ok, d2 = rule(qi, pi)
-        d2 = jnp.where((s < total) & ok, d2, jnp.inf)
-        best_d2 = best_d2.at[qi].min(d2)
-        hit = jnp.isfinite(d2) & (d2 == best_d2[qi])
-        best = best.at[jnp.where(hit, qi, nq)].set(pi, mode="drop")
-        return k + 1, best, best_d2
-
-    init = (
-        jnp.zeros((), jnp.int32),
-        jnp.full(nq, -1, jnp.int32),
-        jnp.full(nq, jnp.inf, centres.dtype),
-    )
-    _, best, _ = jax.lax.while_loop(lambda s: s[0] * _CHUNK < total, body, init)
-    return best
-
-
-class _BodyRule(eqx.Module):
-    """Compatible with vertex `q`: within `sqrt(r2)` and normals at most `acos(cos_max)` apart
-    (as `compatible_correspondences`: scan normals shorter than 0.5 are unknown and match)."""
-
-    points: Float[Array, "P 3"]
-    normals: Float[Array, "P 3"]
-    queries: Float[Array, "Q 3"]
-    qnormals: Float[Array, "Q 3"]
-    cos_max: float
-    r2: float
-
-    def __call__(self, qi, pi):
-        n = self.normals[pi]
-        d2 = jnp.sum((self.queries[qi] - self.points[pi]) ** 2, axis=-1)
-        dot = jnp.sum(n * self.qnormals[qi], axis=-1)
-        unknown = jnp.sum(n * n, axis=-1) < 0.25
-        return (d2 <= self.r2) & ((dot >= self.cos_max) | unknown), d2
-
-
 class _HeadRule(eqx.Module):
     """humanshape's head rule: a head scan point within `sqrt(r2)` whose displacement from vertex
     `q` lies in the cone of half-angle `acos(cos_cone)` around the outward vertex normal."""
@@ -542,7 +434,7 @@ def _correspond(prep: _Prep, cfg: NRDConfig, y, grids, points, normals, pmask):
         is_head = (hq - a[0]) @ n > 0
         body_active = body_active.at[prep.head_cand].set(~is_head & body_active[prep.head_cand])
     cos_max = math.cos(math.radians(cfg.max_angle_deg))
-    body = _BodyRule(points, normals, y, vn, cos_max, cfg.max_dist_mm**2)
+    body = _CompatibleRule(points, normals, y, vn, cos_max, cfg.max_dist_mm**2)
     idx = _grid_search(grid_b, y, body_active, body, _REACH)
     if grid_h is not None:
         above = pmask & ((points - a[0]) @ n > 0)

@@ -1,0 +1,159 @@
+"""Exact fixed-radius nearest-point searches on a uniform grid (the registration's correspondences).
+
+Used by NRD's correspondence rules (`_nrd.py`) and the paper's fitting error (`_evaluate.py`). The
+scan points are bucketed once per call into cells (sorted int32 cell keys); a query scans the
+`(2 reach + 1)^3` cells around it, and the candidate runs of all queries are processed in
+fixed-size chunks, so the work is the number of candidates, not queries x points. A `rule`
+callable decides which candidates a query accepts and returns their squared distances.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+# Grid axes are clamped to this many cells (keys stay < 2^31 in int32); clamping only merges far
+# cells, which adds candidates but never loses one, so the radius search stays exact.
+_GRID_AXIS = 1024
+# Cells per search radius: a radius-r search scans the (2 _REACH + 1)³ cells of size r / _REACH
+# around the query (cube side 2.5 r instead of 3 r for cells of size r).
+_REACH = 2
+
+
+class _Grid(eqx.Module):
+    lo: Float[Array, " 3"]
+    cell: Float[Array, ""]
+    dims: Int[Array, " 3"]
+    skey: Int[Array, " P"]  # sorted cell keys (masked points last)
+    order: Int[Array, " P"]  # point index of each sorted key
+
+
+def _grid_build(points: Float[Array, "P 3"], mask: Bool[Array, " P"], cell) -> _Grid:
+    inf = jnp.asarray(jnp.inf, points.dtype)
+    cell = jnp.asarray(cell, points.dtype)
+    # One empty cell of margin below and above every point, so that the clamped three-cell rows of
+    # a query outside the grid still cover every point within one cell of it.
+    lo = jnp.min(jnp.where(mask[:, None], points, inf), axis=0) - cell
+    ijk = jnp.clip(jnp.floor((points - lo) / cell), 0, _GRID_AXIS - 2).astype(jnp.int32)
+    dims = jnp.max(jnp.where(mask[:, None], ijk, 0), axis=0) + 2
+    key = ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
+    key = jnp.where(mask, key, jnp.iinfo(jnp.int32).max)
+    order = jnp.argsort(key).astype(jnp.int32)
+    return _Grid(lo, cell, dims.astype(jnp.int32), key[order], order)
+
+
+def _rows(reach: int) -> np.ndarray:
+    r = range(-reach, reach + 1)
+    return np.array([(dy, dz) for dz in r for dy in r], np.int32)
+
+
+# Candidate slots examined per step of the search loop (bounds memory, not the result).
+_CHUNK = 1 << 15
+
+
+def _grid_search(
+    grid: _Grid, centres: Float[Array, "Q 3"], active: Bool[Array, " Q"], rule, reach: int
+) -> Int[Array, " Q"]:
+    """For each active query, the point minimising `rule`'s squared distance among the points it
+    accepts, searched in the `(2 reach + 1)³` cells around `centres[q]`; `-1` where there is none.
+    Exact when every accepted point lies within `reach` cells of the centre.
+
+    The candidate runs of all queries (one contiguous run of sorted keys per row of cells) are laid
+    end to end and processed `_CHUNK` slots at a time, so the work is the total number of
+    candidates, not queries x the longest run."""
+    nq = centres.shape[0]
+    if nq == 0:
+        return jnp.zeros((0,), jnp.int32)
+    ijk = jnp.clip(jnp.floor((centres - grid.lo) / grid.cell), 0, grid.dims - 1).astype(jnp.int32)
+    rows = jnp.asarray(_rows(reach))
+    nr = rows.shape[0]
+    y = ijk[:, 1:2] + rows[None, :, 0]
+    z = ijk[:, 2:3] + rows[None, :, 1]
+    inside = (y >= 0) & (y < grid.dims[1]) & (z >= 0) & (z < grid.dims[2]) & active[:, None]
+    base = grid.dims[0] * (y + grid.dims[1] * z)
+    x0 = jnp.maximum(ijk[:, 0:1] - reach, 0)
+    x1 = jnp.minimum(ijk[:, 0:1] + reach, grid.dims[0] - 1)
+    start = jnp.searchsorted(grid.skey, base + x0, side="left").astype(jnp.int32)
+    end = jnp.searchsorted(grid.skey, base + x1, side="right").astype(jnp.int32)
+    count = jnp.where(inside, end - start, 0).reshape(-1)
+    start = start.reshape(-1)
+    cum = jnp.cumsum(count)  # inclusive; lane l holds slots [cum[l] - count[l], cum[l])
+    total = cum[-1]
+    last = grid.order.shape[0] - 1
+    slots = jnp.arange(_CHUNK, dtype=jnp.int32)
+
+    def body(state):
+        k, best, best_d2 = state
+        s = k * _CHUNK + slots
+        lane = jnp.minimum(jnp.searchsorted(cum, s, side="right"), cum.shape[0] - 1)
+        pi = grid.order[jnp.minimum(start[lane] + s - (cum[lane] - count[lane]), last)]
+        qi = lane // nr
+        ok, d2 = rule(qi, pi)
+        d2 = jnp.where((s < total) & ok, d2, jnp.inf)
+        best_d2 = best_d2.at[qi].min(d2)
+        hit = jnp.isfinite(d2) & (d2 == best_d2[qi])
+        best = best.at[jnp.where(hit, qi, nq)].set(pi, mode="drop")
+        return k + 1, best, best_d2
+
+    init = (
+        jnp.zeros((), jnp.int32),
+        jnp.full(nq, -1, jnp.int32),
+        jnp.full(nq, jnp.inf, centres.dtype),
+    )
+    _, best, _ = jax.lax.while_loop(lambda s: s[0] * _CHUNK < total, body, init)
+    return best
+
+
+class _WithinRule(eqx.Module):
+    """Accepts every point within `sqrt(r2)` of the query (the plain nearest neighbour)."""
+
+    points: Float[Array, "P 3"]
+    queries: Float[Array, "Q 3"]
+    r2: float
+
+    def __call__(self, qi, pi):
+        d2 = jnp.sum((self.queries[qi] - self.points[pi]) ** 2, axis=-1)
+        return d2 <= self.r2, d2
+
+
+class _CompatibleRule(eqx.Module):
+    """Accepts points within `sqrt(r2)` whose normal is at most `acos(cos_max)` from the query's
+    (scan normals shorter than 0.5 are unknown and match any direction)."""
+
+    points: Float[Array, "P 3"]
+    normals: Float[Array, "P 3"]
+    queries: Float[Array, "Q 3"]
+    qnormals: Float[Array, "Q 3"]
+    cos_max: float
+    r2: float
+
+    def __call__(self, qi, pi):
+        n = self.normals[pi]
+        d2 = jnp.sum((self.queries[qi] - self.points[pi]) ** 2, axis=-1)
+        dot = jnp.sum(n * self.qnormals[qi], axis=-1)
+        unknown = jnp.sum(n * n, axis=-1) < 0.25
+        return (d2 <= self.r2) & ((dot >= self.cos_max) | unknown), d2
+
+
+def nearest_within(
+    queries: Float[Array, "Q 3"],
+    points: Float[Array, "P 3"],
+    mask: Bool[Array, " P"],
+    radius: float,
+    *,
+    query_normals: Float[Array, "Q 3"] | None = None,
+    point_normals: Float[Array, "P 3"] | None = None,
+    cos_max: float | None = None,
+) -> Int[Array, " Q"]:
+    """Index of the nearest real point within `radius` of every query (`-1` where none); with
+    normals and `cos_max`, the nearest *normal-compatible* one. Exact; one grid per call."""
+    grid = _grid_build(points, mask, radius / _REACH)
+    active = jnp.ones(queries.shape[0], bool)
+    if cos_max is None:
+        rule = _WithinRule(points, queries, radius**2)
+    else:
+        rule = _CompatibleRule(points, point_normals, queries, query_normals, cos_max, radius**2)
+    return _grid_search(grid, queries, active, rule, _REACH)
