@@ -1,13 +1,14 @@
 """The registration template: the default body's rest mesh as an S-SCAPE template, with its rig.
 
-Every S-SCAPE registration step (landmark alignment, S-SCAPE fitting, NRD, posture normalization, depth
-fitting) works on this one template. By default it is the 6,449-vertex decimated topology of the default
-body (the S-SCAPE template's vertex count; a vertex subset of the full mesh, so ground-truth meshes in
-the full topology restrict to it exactly with `vertices[..., vertex_map, :]`).
+Every S-SCAPE registration step (landmark alignment, S-SCAPE fitting, NRD, posture normalization,
+depth fitting) works on this one template. By default it is the 6,449-vertex decimated topology of
+the default body (the S-SCAPE template's vertex count; a vertex subset of the full mesh, so
+ground-truth meshes in the full topology restrict to it exactly with `vertices[..., vertex_map, :]`).
 
-The vertex joint regressor of the full body does not carry over to a vertex subset, so it is refitted
-here on the host with the asset builder's `joint_regressor` (sum-to-one weights over the nearest template
-vertices, least squares over sampled bodies whose joints are known exactly from the phenotype basis).
+The vertex joint regressor of the full body does not carry over to a vertex subset, so it is
+refitted here on the host with the asset builder's `joint_regressor` (sum-to-one weights over the
+nearest template vertices, least squares over sampled bodies whose joints are known exactly from
+the phenotype basis).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-# Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape does).
+# Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape
+# does).
 _HAND_WORDS = ("Hand", "Thumb", "Finger")
 
 
@@ -34,15 +36,16 @@ class RegistrationTemplate(eqx.Module):
     - `faces`: triangles, shape `(F, 3)`, int32, outward oriented.
     - `vertex_map`: shape `(V,)`, index of each template vertex in the full default-body mesh.
     - `landmark_index`: template vertex of each named landmark, shape `(L,)`.
-    - `landmark_error`: distance from each landmark's full-mesh vertex to the template vertex used for
-      it on the rest template, shape `(L,)`, metres (0 where the vertex is kept by the decimation).
+    - `landmark_error`: distance from each landmark's full-mesh vertex to the template vertex used
+      for it on the rest template, shape `(L,)`, metres (0 where the vertex is kept by the
+      decimation).
     - `hand_mask`: shape `(V,)`, vertices skinned mostly (weight > 0.5) to hand/finger/thumb bones.
     - `head_mask`: shape `(V,)`, vertices skinned mostly to the head and neck bones.
     - `skin_index`, `skin_weight`: top-k skin weights, shapes `(V, K)`; rows sum to one.
     - `joint_regressor_indices`, `joint_regressor_weights`: sparse joint regressor over the template
       vertices, shapes `(J, M)`; weights of each joint sum to one.
-    - `regressor_max_error`: held-out maximum joint error of that regressor over sampled adult bodies,
-      metres (a float).
+    - `regressor_max_error`: held-out maximum joint error of that regressor over sampled adult
+      bodies, metres (a float).
     - `parents`, `joint_names`, `landmark_names`: static.
     """
 
@@ -73,7 +76,8 @@ class RegistrationTemplate(eqx.Module):
     def rig_kwargs(self) -> dict:
         """The rig as keyword arguments of [`bodyprior.sscape.learn`][].
 
-        **Example:** `bodyprior.sscape.learn(meshes, tmpl.faces, n_components=20, **tmpl.rig_kwargs())`.
+        **Example:**
+        `bodyprior.sscape.learn(meshes, tmpl.faces, n_components=20, **tmpl.rig_kwargs())`.
         """
         return dict(
             parents=self.parents,
@@ -168,8 +172,8 @@ def registration_template(
     - `n_fit`: sampled adult bodies used to fit the joint regressor (half as many more check it).
     - `regressor_size`: template vertices per joint in the regressor.
 
-    **Returns:** a [`bodyprior.sscape.RegistrationTemplate`][] (its `regressor_max_error` reports the
-    held-out joint error of the refitted regressor).
+    **Returns:** a [`bodyprior.sscape.RegistrationTemplate`][] (its `regressor_max_error` reports
+    the held-out joint error of the refitted regressor).
     """
     if rig not in ("cmu_mb", "game_engine"):
         raise ValueError(f"`rig` must be 'cmu_mb' or 'game_engine', got {rig!r}.")
