@@ -55,7 +55,7 @@ SIZES = {
     "quick": dict(n_init=12, n_boot=6, n_test=2, n_passes=2, points=6449, fit_passes=2,
                   pool=60, sizes=(10, 20, 40), n_eval=10, n_posture=16, spec_samples=200,
                   spec_samples_big=200, spec_samples_posture=200, components=(1, 2, 3, 5),
-                  n_init_components=6),
+                  n_init_components=5),
     "full": dict(n_init=30, n_boot=12, n_test=6, n_passes=3, points=9674, fit_passes=3,
                  pool=1100, sizes=(50, 100, 1000), n_eval=100, n_posture=200,
                  spec_samples=10000, spec_samples_big=200, spec_samples_posture=500,

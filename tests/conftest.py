@@ -6,7 +6,8 @@ library code must behave identically under both precisions (it never hard-codes 
 
 import os
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# One host device: batched entry points compile once per device, so extra host devices would only
+# multiply compile time here; multi-device runs are tested in their own processes.
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import jax  # noqa: E402

@@ -360,7 +360,6 @@ def size_space(tmpl):
     return sscape.learn(meshes, tmpl.faces, n_components=1, **tmpl.rig_kwargs())
 
 
-@pytest.mark.slow  # ~2 min on an idle 2-core machine (compiles the S-SCAPE fit and NRD)
 def test_registration_survives_hard_scans(subject, tmpl, size_space):
     """30 % holes, 2 mm noise, 5 % outliers, 10 mm landmark noise, 15 % landmarks missing: the
     S-SCAPE fit and NRD finish, and stay close to the ground truth (the scanned body is the

@@ -215,10 +215,10 @@ def test_no_nan_gradients_at_zero_pose(setup):
     assert np.abs(g_pose).max() > 0 and np.abs(g_coeffs).max() > 0
 
 
-@pytest.mark.slow
 def test_sharded_batch_equals_single(setup, tmp_path):
     """8 host devices (own process): the SPMD-sharded batch (8 devices, one partitioned program)
-    == the per-device batch (the CPU default, 2 devices) == single fits."""
+    == the per-device batch (the CPU default: 2 devices, items one after another) == single
+    fits."""
     scans = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *setup["scans"])
     inp, out_path = tmp_path / "in.pkl", tmp_path / "out.pkl"
     with open(inp, "wb") as f:

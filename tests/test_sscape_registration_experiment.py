@@ -16,7 +16,6 @@ def _load():
     return mod
 
 
-@pytest.mark.slow
 def test_registration_experiment_tiny(tmp_path):
     exp = _load()
     out = tmp_path / "reg"

@@ -19,7 +19,6 @@ def _load():
     return mod
 
 
-@pytest.mark.slow  # registers simulated scans: minutes on 2 cores (compiles dominate)
 @pytest.mark.filterwarnings("ignore::UserWarning")
 def test_quick_run_writes_metrics_and_figures(tmp_path):
     mod = _load()
