@@ -28,3 +28,17 @@ def getkey():
         return sub
 
     return _getkey
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drops JAX's compiled programs after every test module.
+
+    One pytest process compiles thousands of XLA programs; kept all session long, their memory and
+    code mappings grew until an XLA compile segfaulted late in the suite. Modules rarely share
+    programs, so the recompiles this causes are few."""
+    yield
+    import gc
+
+    jax.clear_caches()
+    gc.collect()
