@@ -571,3 +571,17 @@ def test_mpii_malformed(tiny, tmp_path):
         load_mpii_humanshape(tmp_path)
     with pytest.raises(ValueError, match="directory"):
         load_mpii_humanshape(tmp_path / "nope")
+
+
+def test_evaluate_subset_equals_full_rows(model, getkey):
+    c = jr.normal(getkey(), (5,))
+    pose = 0.4 * jr.normal(getkey(), (4, 3))
+    sim = Similarity.from_scale(_random_rotation(getkey()), jr.normal(getkey(), (3,)), 0.9)
+    idx = jnp.array([0, 3, 3, model.n_vertices - 1])
+    v, j = evaluate(model, c, pose, sim)
+    vs, js = evaluate(model, c, pose, sim, subset=idx)
+    assert vs.shape == (4, 3)
+    np.testing.assert_allclose(vs, v[idx], atol=1e-12)
+    np.testing.assert_allclose(js, j, atol=1e-12)
+    with pytest.raises(ValueError, match="subset"):
+        evaluate(model, c, pose, subset=jnp.array([0.5, 1.0]))
