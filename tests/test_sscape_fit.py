@@ -213,6 +213,7 @@ def test_no_nan_gradients_at_zero_pose(setup):
     assert np.abs(g_pose).max() > 0 and np.abs(g_coeffs).max() > 0
 
 
+@pytest.mark.slow  # ~70 s (own 8-device process, 3 compiles); the suite's 15-min budget
 def test_sharded_batch_equals_single(setup, tmp_path):
     """8 host devices (own process): the SPMD-sharded batch (8 devices, one partitioned program,
     vmapped) == the per-device batch (the CPU default: 2 devices, each `lax.map`-ing the single-scan
