@@ -3,15 +3,16 @@
 [`bodyprior.sscape.batch_map`][] is the engine of the batched registration entry points
 (`fit_sscape_batch`; NRD and depth fitting can reuse it). The batch is cut into chunks of a fixed
 size (the last one padded by repeating its final item, so every chunk has the same shape and the
-kernel compiles once per device); every device fits its own slice of each chunk with the
-`jax.vmap`-ed kernel. Items are independent. Two ways to spread a chunk (`strategy`):
+kernel compiles once per device); every device fits its own slice of each chunk. Items are
+independent. Two ways to spread a chunk (`strategy`):
 
 - `"spmd"` (default on accelerators): one jitted call whose inputs are split over a one-axis
   `jax.sharding.Mesh` (axis `"scan"`, `NamedSharding(mesh, PartitionSpec("scan"))`); XLA's SPMD
   partitioner gives every device its slice and compiles once. The partitioned program all-reduces
   the batched loops' stopping predicates in every iteration of every (nested) while loop.
 - `"per_device"` (default when all devices are CPUs): every device gets its slice as its own call
-  of the same jitted vmap, dispatched asynchronously so the devices run concurrently; no
+  of the same jitted function (`lax.map` over the items on CPUs, `vmap` elsewhere), dispatched
+  asynchronously so the devices run concurrently; no
   collectives at all, one compilation per device. On host CPU devices the `"spmd"` program of the
   S-SCAPE fit deadlocked (jax 0.10.2, 2 host devices on 2 cores, chunks of 12 scans: every XLA
   worker thread idle, the caller waiting in `block_until_ready`; neither the GSPMD partitioner,
@@ -141,8 +142,9 @@ def batch_map(
     if not devices:
         raise ValueError("`devices` must name at least one device.")
     n_dev = len(devices)
+    on_cpu = all(d.platform == "cpu" for d in devices)
     if strategy is None:
-        strategy = "per_device" if all(d.platform == "cpu" for d in devices) else "spmd"
+        strategy = "per_device" if on_cpu else "spmd"
     if strategy not in ("spmd", "per_device"):
         raise ValueError(f"`strategy` must be 'spmd', 'per_device' or None, got {strategy!r}.")
     if strategy == "per_device" and any(d.process_index != jax.process_index() for d in devices):
@@ -185,7 +187,7 @@ def batch_map(
         ]  # fmt: skip
     per = chunk // n_dev
     # per device: items one after another on CPUs (see `_run_map`), vmapped elsewhere
-    run = _run_map if all(d.platform == "cpu" for d in devices) else _run_vmap
+    run = _run_map if on_cpu else _run_vmap
 
     outs = []
     with tqdm(total=n, desc=desc, unit="scan", disable=not progress) as bar:
@@ -204,10 +206,10 @@ def batch_map(
                         part,
                     )
                     pieces.append(run(kernel, on_device[i], sl))
-                out = _concat([_to_host(o) for o in pieces])
+                outs.append(_concat([_to_host(o) for o in pieces]))
             else:
                 out = _run_sharded(kernel, item_sharding, replicated, _place(part, item_sharding))
-            outs.append(_to_host(out))
+                outs.append(_to_host(out))
             bar.update(min(chunk, n - s))
     return jax.tree_util.tree_map(lambda x: x[:n] if eqx.is_array(x) else x, _concat(outs))
 
