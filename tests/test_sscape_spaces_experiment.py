@@ -19,7 +19,6 @@ def _load():
     return mod
 
 
-@pytest.mark.slow  # ~80 s on 2 cores; the suite's 15-min budget (pytest -m slow)
 @pytest.mark.filterwarnings("ignore::UserWarning")
 def test_quick_run_writes_metrics_and_figures(tmp_path):
     mod = _load()
