@@ -2,9 +2,9 @@
 
 Used by NRD's correspondence rules (`_nrd.py`) and the paper's fitting error (`_evaluate.py`). The
 scan points are bucketed once per call into cells (sorted int32 cell keys); a query scans the
-`(2 reach + 1)^3` cells around it, and the candidate runs of all queries are processed in
-fixed-size chunks, so the work is the number of candidates, not queries x points. A `rule`
-callable decides which candidates a query accepts and returns their squared distances.
+cells that meet its search ball of `reach` cells, and the candidate runs of all queries are
+processed in fixed-size chunks, so the work is the number of candidates, not queries x points. A
+`rule` callable decides which candidates a query accepts and returns their squared distances.
 """
 
 from __future__ import annotations

@@ -57,9 +57,10 @@ previous round, with a two-level preconditioner: block Jacobi (the 4x4 diagonal 
 in closed form by Sherman-Morrison) plus an additive coarse correction on per-patch constant
 transforms (`n_patches` connected patches built on the host; the coarse matrix is assembled and
 inverted through its Cholesky factor in JAX every round, so that each step's coarse solve is one
-matrix product). On the last round of the full-resolution benchmark (`benchmarks/nrd.py`, warm start): the two-level PCG converges in 47 steps (65 ms), block-Jacobi
-PCG in 155 (0.23 s), and optimistix Gauss-Newton with `lineax.Normal(lineax.CG)` (unpreconditioned
-CG on the same `H`, two residual passes per step) makes no progress in 300 steps (1.5 s): `H` spans
+matrix product). On the last round of the full-resolution benchmark (`benchmarks/nrd.py`, warm
+start): the two-level PCG converges in 47 steps (57 ms), block-Jacobi PCG in 157 (0.14 s), and
+optimistix Gauss-Newton with `lineax.Normal(lineax.CG)` (unpreconditioned CG on the same `H`, two
+residual passes per step) makes no progress in 300 steps (1.3 s): `H` spans
 many orders of magnitude (mm translations against unitless linear parts, and smooth modes of
 `L_w` that only the data term pins). The energy is quadratic, so one exact
 linear solve per round is the Gauss-Newton step; the PCG is that step with a usable
