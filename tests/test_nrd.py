@@ -10,7 +10,7 @@ from _toybody import tube_mesh
 
 import bodyprior as bp
 from bodyprior.sscape import _nrd
-from bodyprior.sscape._fit import compatible_correspondences
+from bodyprior.sscape._fit import _compatible_search_jit, compatible_correspondences
 
 N_AROUND, N_RINGS = 20, 28
 N_POINTS = 12000
@@ -239,11 +239,19 @@ def test_correspondences_match_brute_force(setup):
     y, q = (init - centre) * 1000, (scan.points - centre) * 1000
     grids = _nrd._grids(q, scan.point_mask, cfg, prep)
     idx, valid = _nrd._correspond(prep, cfg, y, grids, q, scan.normals, scan.point_mask)
-    ref, w = compatible_correspondences(
+    ref, found = _compatible_search_jit(
+        init, bp.vertex_normals(init, tmpl.faces), scan.points, scan.normals, scan.point_mask,
+        float(np.cos(np.radians(60.0))), 512,
+    )  # fmt: skip
+    d_gate = np.linalg.norm(np.asarray(scan.points)[np.asarray(ref)] - np.asarray(init), axis=1)
+    w = np.asarray(found) & (d_gate <= 0.03) & ~np.asarray(tmpl.hand_mask)
+    # the fit's public rule (a grid search too) agrees with the brute force
+    _, w_fit = compatible_correspondences(
         init, bp.vertex_normals(init, tmpl.faces), scan, max_dist=0.03, exclude_mask=tmpl.hand_mask
     )
+    np.testing.assert_array_equal(np.asarray(w_fit) > 0, w)
     assert 0.3 < float(valid.mean()) < 1.0
-    np.testing.assert_array_equal(np.asarray(valid), np.asarray(w) > 0)
+    np.testing.assert_array_equal(np.asarray(valid), w)
     ok = np.asarray(valid)
     d_ours = np.linalg.norm(
         np.asarray(scan.points)[np.asarray(idx)[ok]] - np.asarray(init)[ok], axis=1

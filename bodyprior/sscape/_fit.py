@@ -67,6 +67,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
 from .._validate import check_array, is_tracer
+from ._grid import nearest_within
 from ._model import SScapeModel, evaluate, shape_vertices
 from ._scan import Scan, check_scan
 from ._template import RegistrationTemplate
@@ -131,7 +132,9 @@ class FitConfig:
     - `solver_rtol`, `solver_atol`: Levenberg-Marquardt tolerances (parameters in m/rad, objective
       in mm^2).
     - `exclude_hands`: exclude `tmpl.hand_mask` vertices from the data term (True, humanshape).
-    - `chunk_size`: model vertices per block of the correspondence search (memory `O(chunk * P)`).
+    - `chunk_size`: points per block of the depth fit's brute-force point -> model search
+      ([`bodyprior.sscape.fit_depth`][]; memory `O(chunk * V)`); the model -> scan search is a grid
+      radius search of `max_dist`.
     """
 
     max_passes: int = 10
@@ -269,15 +272,28 @@ _compatible_search_jit = jax.jit(_compatible_search, static_argnums=(5, 6))
 
 
 def _correspondences(verts, normals, scan_points, scan_normals, scan_mask, exclude, cfg):
-    """(idx, weight, distance) of every vertex; weight 1 for a valid pair, else 0."""
+    """(idx, weight, distance) of every vertex; weight 1 for a valid pair, else 0.
+
+    The nearest compatible scan point within `cfg.max_dist` (exact grid radius search, the same as
+    NRD's body rule): a nearer compatible point beyond the gate would be invalid anyway, so this is
+    the brute-force rule "nearest compatible point, then gate" for every valid pair, at ~1/6 of its
+    time (6,449 vertices x 19,347 points: 63 vs 407 ms). Invalid pairs get index 0."""
     cos_min = float(np.cos(np.deg2rad(cfg.max_angle_deg)))
-    idx, found = _compatible_search_jit(
-        verts, normals, scan_points, scan_normals, scan_mask, cos_min, cfg.chunk_size
+    verts_s = jax.lax.stop_gradient(verts)
+    found = nearest_within(
+        verts_s,
+        scan_points,
+        scan_mask,
+        cfg.max_dist,
+        query_normals=jax.lax.stop_gradient(normals),
+        point_normals=scan_normals,
+        cos_max=cos_min,
     )
+    valid = (found >= 0) & ~exclude
+    idx = jnp.maximum(found, 0)
     diff = verts - scan_points[idx]
     sq = jnp.sum(diff * diff, -1)
-    dist = jnp.sqrt(jnp.where(found, sq, 0.0))
-    valid = found & (dist <= cfg.max_dist) & ~exclude
+    dist = jnp.sqrt(jnp.where(valid, sq, 0.0))
     return idx, valid.astype(verts.dtype), jax.lax.stop_gradient(dist)
 
 
@@ -289,17 +305,15 @@ def compatible_correspondences(
     max_dist: float = 0.05,
     max_angle_deg: float = 60.0,
     exclude_mask: Bool[Array, " V"] | None = None,
-    chunk_size: int = 512,
 ) -> tuple[Int[Array, " V"], Float[Array, " V"]]:
     """Template -> scan correspondences: the nearest compatible scan point of every vertex.
 
     A scan point is compatible with vertex `i` when it is a real point (`scan.point_mask`) and the
     angle between its normal and the vertex normal is at most `max_angle_deg` (scan normals shorter
-    than 0.5 count as unknown and match any direction). The search is exact over the whole cloud
-    (brute force in float32, `chunk_size` vertices at a time, `O(V P)` time, `O(chunk_size P)`
-    memory at most): a vertex whose nearest point faces the other way takes the nearest point that
-    does not, instead of being dropped. The pair is valid when a compatible point exists, its
-    distance is at most `max_dist` and the vertex is not in `exclude_mask`.
+    than 0.5 count as unknown and match any direction). The search is exact (a grid radius search
+    of `max_dist`, in the inputs' dtype): a vertex whose nearest point faces the other way takes
+    the nearest point that does not, instead of being dropped. The pair is valid when a compatible
+    point exists within `max_dist` and the vertex is not in `exclude_mask`.
 
     Jittable and vmappable (one mesh and one scan; `jax.vmap` for batches); not differentiated
     (recompute distances from `scan.points[idx]` for a differentiable residual).
@@ -312,10 +326,9 @@ def compatible_correspondences(
     - `max_dist`: distance gate, metres (default 0.05).
     - `max_angle_deg`: normal compatibility angle, degrees (default 60).
     - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `tmpl.hand_mask`).
-    - `chunk_size`: vertices per search block (static).
 
-    **Returns:** `(idx, weight)`: `(V,)` int32 index into `scan.points` (0 when no compatible point
-    exists) and `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
+    **Returns:** `(idx, weight)`: `(V,)` int32 index into `scan.points` (0 for invalid pairs) and
+    `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
     """
     if not isinstance(scan, Scan):
         raise ValueError(f"`scan` must be a bodyprior.sscape.Scan, got {type(scan).__name__}.")
@@ -332,16 +345,8 @@ def compatible_correspondences(
         raise ValueError(f"`max_dist` must be a positive number of metres, got {max_dist!r}.")
     if not 0.0 < max_angle_deg <= 180.0:
         raise ValueError(f"`max_angle_deg` must lie in (0, 180], got {max_angle_deg!r}.")
-    if (
-        isinstance(chunk_size, bool)
-        or not isinstance(chunk_size, (int, np.integer))
-        or chunk_size < 1
-    ):
-        raise ValueError(f"`chunk_size` must be a positive int, got {chunk_size!r}.")
     verts = jnp.asarray(verts)
-    cfg = FitConfig(
-        max_dist=float(max_dist), max_angle_deg=float(max_angle_deg), chunk_size=int(chunk_size)
-    )
+    cfg = FitConfig(max_dist=float(max_dist), max_angle_deg=float(max_angle_deg))
     idx, w, _ = _correspondences(
         verts,
         jnp.asarray(normals, verts.dtype),

@@ -46,8 +46,8 @@ area-weighted vertex normals):
 Both are exact radius searches on a uniform grid of the scan points built once per call (sorted
 cell keys; the candidate runs of all queries processed in fixed-size chunks, so the work is the
 number of candidates). The head search scans only the smallest ball around its cone. Compared
-with the brute-force `V x P` search (`compatible_correspondences`, used by the S-SCAPE fit) a
-round's search at 13,380 vertices and 40k points costs ~60 ms of CPU instead of seconds.
+with a brute-force `V x P` search a round's search at 13,380 vertices and 40k points costs ~40 ms
+of CPU instead of seconds.
 
 **Solver.** For fixed correspondences the minimiser solves the normal equations `H X = R` with
 one `4V x 4V` matrix `H = blockdiag(d_i p̃_i p̃_iᵀ) + L_w ⊗ I_4` for the three rows of all `A_i`
