@@ -4,8 +4,8 @@ Used by NRD's correspondence rules (`_nrd.py`) and the paper's fitting error (`_
 scan points are bucketed once per call into cells (sorted int32 cell keys); a query scans the
 cells that meet its search ball of `reach` cells, and the candidate runs of all queries, in tiles
 of a few slots of one query, are processed in fixed-size chunks, so the work is the number of
-candidates, not queries x points. A
-`rule` callable decides which candidates a query accepts and returns their squared distances.
+candidates, not queries x points. A `rule` callable decides which candidates a query accepts and
+returns their squared distances.
 """
 
 from __future__ import annotations
