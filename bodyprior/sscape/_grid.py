@@ -119,13 +119,13 @@ def _grid_search(
         t = k * tc + tiles
         q = jnp.minimum(jnp.searchsorted(tcum, t, side="right"), nq - 1).astype(jnp.int32)
         j = (t - (tcum[q] - ntile[q]))[:, None] * W + lanes[None, :]  # slot within query (tc, W)
-        r = jnp.sum(lc[q][:, None, :] <= j[:, :, None], axis=-1)
-        r = jnp.minimum(r, nr - 1)
+        lcq = lc[q]  # (tc, R) running counts of each tile's query
+        r = jnp.minimum(jnp.sum(lcq[:, None, :] <= j[:, :, None], axis=-1), nr - 1)
         off = j - jnp.take_along_axis(lex[q], r, axis=1)
         pi = grid.order[jnp.clip(jnp.take_along_axis(start[q], r, axis=1) + off, 0, last)]
         qb = jnp.broadcast_to(q[:, None], (tc, W))
         ok, d2 = rule(qb.reshape(-1), pi.reshape(-1))
-        use = (t < total)[:, None] & (j < n[q][:, None]) & ok.reshape(tc, W)
+        use = (t < total)[:, None] & (j < lcq[:, -1:]) & ok.reshape(tc, W)
         d2 = jnp.where(use, d2.reshape(tc, W), jnp.inf)
         a = jnp.argmin(d2, axis=1)
         dmin = jnp.take_along_axis(d2, a[:, None], axis=1)[:, 0]
