@@ -58,9 +58,11 @@ in closed form by Sherman-Morrison) plus an additive coarse correction on per-pa
 transforms (`n_patches` connected patches built on the host; the coarse matrix is assembled and
 inverted through its Cholesky factor in JAX every round, so that each step's coarse solve is one
 matrix product). On the last round of the full-resolution benchmark (`benchmarks/nrd.py`, warm
-start): the two-level PCG converges in 47 steps (57 ms), block-Jacobi PCG in 157 (0.14 s), and
-optimistix Gauss-Newton with `lineax.Normal(lineax.CG)` (unpreconditioned CG on the same `H`, two
-residual passes per step) makes no progress in 300 steps (1.3 s): `H` spans
+start, `cg_rtol = 1e-2`): the two-level PCG converges in 23 steps (25 ms), block-Jacobi PCG in
+20 (19 ms), but over the whole schedule block Jacobi alone needs ~4.7x the steps (779 vs 164 per
+scan, 4 scans): the first rounds start far from their minimum and need the coarse level. Optimistix
+Gauss-Newton with `lineax.Normal(lineax.CG)` (unpreconditioned CG on the same `H`, two residual
+passes per step) makes no progress in 300 steps (1.5 s): `H` spans
 many orders of magnitude (mm translations against unitless linear parts, and smooth modes of
 `L_w` that only the data term pins). The energy is quadratic, so one exact
 linear solve per round is the Gauss-Newton step; the PCG is that step with a usable
@@ -134,8 +136,12 @@ class NRDConfig(eqx.Module):
     - `head_max_dist_mm`, `head_cone_deg`: the head rule's radius and cone half-angle.
     - `cg_rtol`: a round's solve stops when its preconditioned residual is this fraction of the one
       at its (warm) start: the energy gap to the round's minimum shrinks by about `cg_rtol²`.
+      The default 1e-2 leaves ~1e-4 of each round's gap; 1e-3 and 1e-4 took 2.3x and 3.6x the
+      steps with the same final energies and errors (6 simulated scans, `docs/benchmarks.md`).
     - `cg_max_steps`: conjugate-gradient steps per round at most.
-    - `n_patches`: patches of the coarse preconditioner (0 = block Jacobi only).
+    - `n_patches`: patches of the coarse preconditioner (0 = block Jacobi only). 32 and 64 ran
+      equally fast on the full-resolution template; 128 (a 512 x 512 coarse inverse per round)
+      took ~20 % longer, block Jacobi alone ~70 % longer.
     """
 
     data_weight: float = 1.0
@@ -152,9 +158,9 @@ class NRDConfig(eqx.Module):
     head_rule: bool = True
     head_max_dist_mm: float = 50.0
     head_cone_deg: float = 30.0
-    cg_rtol: float = 1e-3
+    cg_rtol: float = 1e-2
     cg_max_steps: int = 2000
-    n_patches: int = 128
+    n_patches: int = 64
 
     def __check_init__(self):
         positive = dict(
@@ -467,7 +473,11 @@ class _Round(eqx.Module):
 
 
 def _apply(ph: Float[Array, "V 4"], X: Float[Array, "V 4 3"]) -> Float[Array, "V 3"]:
-    return jnp.einsum("vk,vkc->vc", ph, X)
+    # Four fused multiply-adds: XLA:CPU runs the equivalent batched einsum 2.5x slower.
+    y = ph[:, 0, None] * X[:, 0]
+    for k in range(1, ph.shape[1]):
+        y = y + ph[:, k, None] * X[:, k]
+    return y
 
 
 def _energy(X, ph, rnd: _Round, prep: _Prep) -> tuple[Array, tuple[Array, Array, Array]]:
@@ -538,8 +548,8 @@ def _system(rnd: _Round, ph, prep: _Prep, coarse: bool) -> _System:
         # A relative ridge keeps the factor finite when a round constrains no global affine map
         # (no data and no landmarks); it only affects the preconditioner, not the solution.
         C = C + 1e-10 * jnp.mean(jnp.diag(C)) * jnp.eye(4 * n, dtype=ph.dtype)
-        # The explicit inverse (once per round, ~14 ms at 512 x 512) makes the coarse solve of
-        # each CG step one matrix product: 0.25 ms instead of 0.8 ms for two triangular solves.
+        # The explicit inverse (once per round, ~3 ms at 256 x 256, ~12 ms at 512 x 512) makes the
+        # coarse solve of each CG step one matrix product instead of two triangular solves.
         chol = jnp.linalg.cholesky(C)
         inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(4 * n, dtype=ph.dtype))
         coarse_inv = 0.5 * (inv + inv.T)  # exactly symmetric, as PCG needs
