@@ -12,11 +12,13 @@ exactly) that validate what they read and raise `ValueError` naming the file.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
 import sys
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -148,6 +150,61 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
         ) from None
     with atomic_open(path, "w") as f:
         f.write(text + "\n")
+
+
+# Versioned zip containers (`bodyprior.sscape` models, DSPP priors and checkpoints): a
+# `metadata.json` with "format", "version" and the sha256 of the member "leaves.eqx", plus members.
+
+
+def _write_zip(path: str | os.PathLike, metadata: dict, members: dict[str, bytes]) -> None:
+    """Writes `metadata.json` and `members` (stored, uncompressed) to `path` atomically."""
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise ValueError(f"`path`: directory {directory!r} does not exist.")
+    with atomic_open(path, "wb") as f:
+        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+            zf.writestr("metadata.json", json.dumps(metadata, indent=1))
+            for name, data in members.items():
+                zf.writestr(name, data)
+
+
+def _read_zip(
+    path: str, fmt: str, version: int, members: tuple[str, ...]
+) -> tuple[dict, dict[str, bytes]]:
+    """`(metadata, {member: bytes})` of a container written by `_write_zip`, after checking that
+    it is a readable zip with those members, of format `fmt` and version `version`, and that
+    "leaves.eqx" matches the recorded sha256. Raises `ValueError` naming `path` otherwise."""
+    if not os.path.isfile(path):
+        raise ValueError(f"`path`: no such file {path!r}.")
+    try:
+        with zipfile.ZipFile(path, "r") as zf:
+            if not {"metadata.json", *members} <= set(zf.namelist()):
+                raise ValueError(
+                    f"{path!r} is not a {fmt} file (missing one of metadata.json, "
+                    f"{', '.join(members)})."
+                )
+            raw = zf.read("metadata.json")
+            data = {m: zf.read(m) for m in members}
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as e:
+        raise ValueError(f"{path!r} is not a readable {fmt} file: {e}") from e
+    except zipfile.error as e:  # pragma: no cover - other zip errors (e.g. CRC)
+        raise ValueError(f"{path!r} is not a readable {fmt} file (corrupted): {e}") from e
+    try:
+        meta = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path!r}: metadata.json is not valid JSON: {e}") from e
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise ValueError(f"{path!r}: format must be {fmt!r}, got {got!r}.")
+    if meta.get("version") != version:
+        raise ValueError(
+            f"{path!r}: unsupported {fmt} version {meta.get('version')!r}; this bodyprior reads "
+            f"version {version}."
+        )
+    if hashlib.sha256(data["leaves.eqx"]).hexdigest() != meta.get("leaves_sha256"):
+        raise ValueError(f"{path!r}: checksum mismatch, the array data are corrupted.")
+    return meta, data
 
 
 # --------------------------------------------------------------------------------------------------

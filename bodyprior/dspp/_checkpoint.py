@@ -17,16 +17,14 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import os
-import zipfile
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._io import atomic_open
+from .._io import _read_zip, _write_zip
 from ._nets import DSPPConfig, GeometryGAN, PosePrior, ShapePrior, init_aegan, init_geometry_gan
 
 PRIOR_FORMAT = "bodyprior.dspp.prior"
@@ -47,42 +45,6 @@ def _deserialise(payload: bytes, like, path: str):
         return eqx.tree_deserialise_leaves(io.BytesIO(payload), like)
     except Exception as e:  # shape/dtype mismatch or truncated payload
         raise ValueError(f"{path!r}: stored arrays do not match the expected structure: {e}") from e
-
-
-def _write_zip(path: str, metadata: dict, members: dict[str, bytes]) -> None:
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f"`path`: directory {directory!r} does not exist.")
-    with atomic_open(path, "wb") as f:
-        with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
-            zf.writestr("metadata.json", json.dumps(metadata, indent=1))
-            for name, data in members.items():
-                zf.writestr(name, data)
-
-
-def _read_zip(path: str, fmt: str, members: tuple[str, ...]) -> tuple[dict, dict[str, bytes]]:
-    if not os.path.isfile(path):
-        raise ValueError(f"`path`: no such file {path!r}.")
-    try:
-        with zipfile.ZipFile(path, "r") as zf:
-            names = set(zf.namelist())
-            if not {"metadata.json", *members} <= names:
-                raise ValueError(f"{path!r} is not a {fmt} file (missing members).")
-            meta = json.loads(zf.read("metadata.json").decode("utf-8"))
-            data = {m: zf.read(m) for m in members}
-    except (zipfile.BadZipFile, OSError, EOFError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path!r} is not a readable {fmt} file: {e}") from e
-    if not isinstance(meta, dict) or meta.get("format") != fmt:
-        got = meta.get("format") if isinstance(meta, dict) else meta
-        raise ValueError(f"{path!r}: format must be {fmt!r}, got {got!r}.")
-    if meta.get("version") != FORMAT_VERSION:
-        raise ValueError(
-            f"{path!r}: unsupported {fmt} version {meta.get('version')!r}; this bodyprior reads "
-            f"version {FORMAT_VERSION}."
-        )
-    if hashlib.sha256(data["leaves.eqx"]).hexdigest() != meta.get("leaves_sha256"):
-        raise ValueError(f"{path!r}: checksum mismatch, the array data are corrupted.")
-    return meta, data
 
 
 def _skeleton(cls_name: str, kind: str, item_shape, config: DSPPConfig):
@@ -126,7 +88,7 @@ def load_prior(path: str | os.PathLike) -> ShapePrior | PosePrior | GeometryGAN:
 
     **Raises:** `ValueError` if the file is missing, of another format/version, or corrupted."""
     path = os.fspath(path)
-    meta, data = _read_zip(path, PRIOR_FORMAT, ("leaves.eqx",))
+    meta, data = _read_zip(path, PRIOR_FORMAT, FORMAT_VERSION, ("leaves.eqx",))
     cls_name, kind = meta.get("class"), meta.get("kind")
     if cls_name not in _CLASSES or kind not in ("shape", "pose"):
         raise ValueError(f"{path!r}: unknown class/kind {cls_name!r}/{kind!r}.")
@@ -187,7 +149,7 @@ def load_checkpoint(checkpoint_dir, tag, like, cfg: DSPPConfig, key, u):
     path = checkpoint_path(d, tag)
     if not os.path.exists(path):
         return None
-    meta, data = _read_zip(path, CHECKPOINT_FORMAT, ("leaves.eqx", "records.npy"))
+    meta, data = _read_zip(path, CHECKPOINT_FORMAT, FORMAT_VERSION, ("leaves.eqx", "records.npy"))
     if meta.get("tag") != tag:
         raise ValueError(f"{path!r}: checkpoint of {meta.get('tag')!r}, expected {tag!r}.")
     if meta.get("config") != _resume_config(cfg):

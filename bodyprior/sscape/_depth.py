@@ -23,9 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from .._geometry import vertex_normals
@@ -39,6 +37,7 @@ from ._fit import (
     _bounded,
     _compatible_search_jit,
     _correspondences,
+    _lm_solve,
     _prepare,
     _umeyama_masked,
 )
@@ -732,18 +731,7 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
     dmax2 = (fc.max_dist * _MM) ** 2
     sw = float(cfg.scan_weight)
 
-    # Normal equations + Cholesky: the Jacobians are tall (~10^4 rows, ~10^2 columns) and XLA's CPU
-    # QR of such a matrix is ~500x slower than forming J^T J (float64; LM damping keeps it SPD).
-    solver = optx.LevenbergMarquardt(
-        rtol=fc.solver_rtol, atol=fc.solver_atol, linear_solver=lx.Normal(lx.Cholesky())
-    )
-
-    def solve(fn, y0, args, steps):
-        sol = optx.least_squares(fn, solver, y0, args, max_steps=steps, throw=False)
-        ok = (sol.result == optx.RESULTS.successful) | (
-            sol.result == optx.RESULTS.nonlinear_max_steps_reached
-        )
-        return sol.value, ~ok, sol.stats["num_steps"]
+    solve = _lm_solve(fc.solver_rtol, fc.solver_atol)
 
     def mesh(coeffs, pose, t, ls, Rk):
         return evaluate(model, coeffs, pose, Similarity(Rk, t, ls))[0]

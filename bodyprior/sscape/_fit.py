@@ -417,6 +417,24 @@ def _bounded(u, b):
     return b * jnp.tanh(u / b)
 
 
+def _lm_solve(rtol: float, atol: float):
+    """`solve(fn, y0, args, steps) -> (value, failed, num_steps)`: Levenberg-Marquardt, no throw.
+
+    Normal equations + Cholesky: the unknowns are few (~100) and the residuals many (~20k); XLA's
+    CPU QR of a 20k x 100 Jacobian costs ~60x more than forming and factoring `JᵀJ` (float64; the
+    damping keeps it SPD). Running out of steps is not a failure (the passes iterate anyway)."""
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
+
+    def solve(fn, y0, args, steps):
+        sol = optx.least_squares(fn, solver, y0, args, max_steps=steps, throw=False)
+        ok = (sol.result == optx.RESULTS.successful) | (
+            sol.result == optx.RESULTS.nonlinear_max_steps_reached
+        )
+        return sol.value, ~ok, sol.stats["num_steps"]
+
+    return solve
+
+
 def _unbounded(c, b):
     return b * jnp.arctanh(jnp.clip(c / b, -0.999, 0.999))
 
@@ -485,18 +503,7 @@ def _fit_one(
         plane = jnp.sum(diff * snormals[idx], -1)
         return (np.sqrt(a) * scale * plane, (np.sqrt(1.0 - a) * scale)[:, None] * diff)
 
-    # Normal equations + Cholesky: the unknowns are few (~100) and the residuals many (~20k); XLA's
-    # CPU QR of a 20k x 100 Jacobian costs ~60x more than forming and factoring J^T J here.
-    solver = optx.LevenbergMarquardt(
-        rtol=cfg.solver_rtol, atol=cfg.solver_atol, linear_solver=lx.Normal(lx.Cholesky())
-    )
-
-    def solve(fn, y0, args, steps):
-        sol = optx.least_squares(fn, solver, y0, args, max_steps=steps, throw=False)
-        ok = (sol.result == optx.RESULTS.successful) | (
-            sol.result == optx.RESULTS.nonlinear_max_steps_reached
-        )
-        return sol.value, ~ok, sol.stats["num_steps"]
+    solve = _lm_solve(cfg.solver_rtol, cfg.solver_atol)
 
     # -- one Levenberg-Marquardt solve over a subset of the unknowns -----------------------------
     # `pose`: joint rotations + translation (+ scale); `shape`: coefficients (+ scale); both for the

@@ -17,14 +17,12 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import os
-import tempfile
-import zipfile
 
 import equinox as eqx
 import numpy as np
 
+from .._io import _read_zip, _write_zip
 from ._model import SScapeModel
 
 FORMAT_NAME = "bodyprior.sscape"
@@ -59,10 +57,6 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
     """
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f"`path`: directory {directory!r} does not exist.")
     arrays = {name: np.asarray(getattr(model, name)) for name in _LEAVES}
     payload = _leaves_bytes(arrays)
     metadata = {
@@ -73,29 +67,7 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
         "leaves": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in arrays.items()},
         "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
-    fd, tmp = tempfile.mkstemp(
-        prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory
-    )
-    try:
-        with os.fdopen(fd, "wb") as f:
-            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
-                zf.writestr("metadata.json", json.dumps(metadata, indent=1))
-                zf.writestr("leaves.eqx", payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-    try:  # make the rename durable
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+    _write_zip(path, metadata, {"leaves.eqx": payload})
 
 
 def load_model(path: str | os.PathLike) -> SScapeModel:
@@ -105,36 +77,8 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
     version, or corrupted (checksum, shapes or dtypes disagree with the metadata).
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ValueError(f"`path`: no such file {path!r}.")
-    try:
-        with zipfile.ZipFile(path, "r") as zf:
-            names = set(zf.namelist())
-            if not {"metadata.json", "leaves.eqx"} <= names:
-                raise ValueError(
-                    f"{path!r} is not a {FORMAT_NAME} file (missing metadata.json/leaves.eqx)."
-                )
-            raw_meta = zf.read("metadata.json")
-            payload = zf.read("leaves.eqx")
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as e:
-        raise ValueError(f"{path!r} is not a readable {FORMAT_NAME} file: {e}") from e
-    except zipfile.error as e:  # pragma: no cover - other zip errors (e.g. CRC)
-        raise ValueError(f"{path!r} is corrupted: {e}") from e
-    try:
-        meta = json.loads(raw_meta.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path!r}: metadata.json is not valid JSON: {e}") from e
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
-        got = meta.get("format") if isinstance(meta, dict) else meta
-        raise ValueError(f"{path!r}: format must be {FORMAT_NAME!r}, got {got!r}.")
-    if meta.get("version") != FORMAT_VERSION:
-        raise ValueError(
-            f"{path!r}: unsupported {FORMAT_NAME} version {meta.get('version')!r}; this bodyprior "
-            f"reads "
-            f"version {FORMAT_VERSION}."
-        )
-    if hashlib.sha256(payload).hexdigest() != meta.get("leaves_sha256"):
-        raise ValueError(f"{path!r}: checksum mismatch, the array data are corrupted.")
+    meta, data = _read_zip(path, FORMAT_NAME, FORMAT_VERSION, ("leaves.eqx",))
+    payload = data["leaves.eqx"]
     spec = meta.get("leaves")
     if not isinstance(spec, dict) or set(spec) != set(_LEAVES):
         raise ValueError(f"{path!r}: metadata must describe exactly the leaves {list(_LEAVES)}.")
