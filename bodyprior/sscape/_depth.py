@@ -35,12 +35,12 @@ from ._fit import (
     FitConfig,
     FitResult,
     _bounded,
-    _compatible_search_jit,
     _correspondences,
     _lm_solve,
     _prepare,
     _umeyama_masked,
 )
+from ._grid import nearest_within
 from ._model import SScapeModel, evaluate, shape_vertices
 from ._scan import Scan, ScanTruth, check_scan
 from ._template import RegistrationTemplate
@@ -770,11 +770,14 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
     def correspond(x, pts, nrm, msk):
         vn = vertex_normals(x, faces)
         idx_m, w_m, d_m = _correspondences(x, vn, pts, nrm, msk, st.exclude, fc)
-        idx_s, found = _compatible_search_jit(
-            pts, nrm, x, vn, jnp.ones((V,), bool), cos_min, fc.chunk_size
-        )
+        # the nearest compatible vertex within the gate (grid radius search over the vertices)
+        found = nearest_within(
+            pts, x, jnp.ones((V,), bool), fc.max_dist,
+            query_normals=nrm, point_normals=vn, cos_max=cos_min,
+        )  # fmt: skip
+        idx_s = jnp.maximum(found, 0)
         d_s = jax.lax.stop_gradient(jnp.linalg.norm(pts - x[idx_s], axis=-1))
-        w_s = (found & msk & (d_s <= fc.max_dist) & ~st.exclude[idx_s]).astype(dtype)
+        w_s = ((found >= 0) & msk & ~st.exclude[idx_s]).astype(dtype)
         corr = (idx_m, w_m, idx_s, w_s, jax.lax.stop_gradient(vn[idx_s]))
         elig = (~st.exclude).astype(dtype)
         term_m = jnp.sum(elig * jnp.where(w_m > 0, (d_m * _MM) ** 2, dmax2)) / n_elig

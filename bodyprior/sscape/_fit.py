@@ -132,9 +132,6 @@ class FitConfig:
     - `solver_rtol`, `solver_atol`: Levenberg-Marquardt tolerances (parameters in m/rad, objective
       in mm^2).
     - `exclude_hands`: exclude `tmpl.hand_mask` vertices from the data term (True, humanshape).
-    - `chunk_size`: points per block of the depth fit's brute-force point -> model search
-      ([`bodyprior.sscape.fit_depth`][]; memory `O(chunk * V)`); the model -> scan search is a grid
-      radius search of `max_dist`.
     """
 
     max_passes: int = 10
@@ -156,10 +153,9 @@ class FitConfig:
     solver_rtol: float = 1e-6
     solver_atol: float = 1e-6
     exclude_hands: bool = True
-    chunk_size: int = 512
 
     def __post_init__(self):
-        for name in ("max_passes", "landmark_steps", "pose_steps", "shape_steps", "chunk_size"):
+        for name in ("max_passes", "landmark_steps", "pose_steps", "shape_steps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"`FitConfig.{name}` must be a positive int, got {v!r}.")
