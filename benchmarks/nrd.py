@@ -168,27 +168,7 @@ class Peer:
                 idx, valid = self.corr(jnp.asarray(X))
             rnd, d, rhs, w, const = self.round_system(r, idx, valid)
             H, R = self.hessian(d, w), np.asarray(rhs).reshape(4 * V, 3)
-
-            def fg(x):
-                Xm = x.reshape(4 * V, 3)
-                HX = H @ Xm
-                return float(np.sum(Xm * HX) - 2 * np.sum(Xm * R) + const), (2 * (HX - R)).reshape(
-                    -1
-                )
-
-            res = scipy.optimize.minimize(
-                fg,
-                X.reshape(-1),
-                jac=True,
-                method="L-BFGS-B",
-                options=dict(
-                    maxcor=5,
-                    maxiter=max_iter,
-                    maxfun=20 * max_iter,
-                    ftol=1e7 * np.finfo(float).eps,
-                    gtol=1e-5,
-                ),
-            )
+            res = _lbfgsb(H, R, const, X.reshape(-1), max_iter)
             X = res.x.reshape(V, 4, 3)
             e, e_mm = self.energy(jnp.asarray(X), rnd, valid)
             energies.append(float(e))
@@ -198,6 +178,29 @@ class Peer:
                 errs.append(err)
         y = np.einsum("vk,vkc->vc", self.ph_np, X) / 1000 + np.asarray(self.centre)
         return y, energies, errs, iters
+
+
+def _lbfgsb(H, R, const, x0, max_iter: int):
+    """scipy L-BFGS-B on `E(X) = <X, H X> - 2 <X, R> + const` (humanshape's settings)."""
+
+    def fg(x):
+        Xm = x.reshape(R.shape)
+        HX = H @ Xm
+        return float(np.sum(Xm * HX) - 2 * np.sum(Xm * R) + const), (2 * (HX - R)).reshape(-1)
+
+    return scipy.optimize.minimize(
+        fg,
+        x0,
+        jac=True,
+        method="L-BFGS-B",
+        options=dict(
+            maxcor=5,
+            maxiter=max_iter,
+            maxfun=20 * max_iter,
+            ftol=1e7 * np.finfo(float).eps,
+            gtol=1e-5,
+        ),
+    )
 
 
 def _block_diag(blocks):
@@ -222,7 +225,7 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
     out = {}
     peer = Peer(tmpl, scan, init, cfg)
     r = peer.n_rounds - 1
-    rnd, *_ = peer.round_system(r, idx, valid)
+    rnd, d, rhs, w, const = peer.round_system(r, idx, valid)
     ph = peer.ph
     X0 = jnp.asarray(X_prev)
     for name, patches in (("pcg_two_level", cfg.n_patches), ("pcg_block_jacobi", 0)):
@@ -241,24 +244,11 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
             seconds=time.perf_counter() - t, steps=int(k), rel_residual=float(res), energy=float(e)
         )
     # scipy L-BFGS-B with humanshape's 100 iterations on the same system from the same start
-    rnd_, d, rhs, w, const = peer.round_system(r, idx, valid)
     H, R = peer.hessian(d, w), np.asarray(rhs).reshape(-1, 3)
-
-    def fg(x):
-        Xm = x.reshape(-1, 3)
-        HX = H @ Xm
-        return float(np.sum(Xm * HX) - 2 * np.sum(Xm * R) + const), (2 * (HX - R)).reshape(-1)
-
     t = time.perf_counter()
-    sol = scipy.optimize.minimize(
-        fg,
-        np.asarray(X0).reshape(-1),
-        jac=True,
-        method="L-BFGS-B",
-        options=dict(maxcor=5, maxiter=100, maxfun=2000, ftol=1e7 * np.finfo(float).eps, gtol=1e-5),
-    )
+    sol = _lbfgsb(H, R, const, np.asarray(X0).reshape(-1), 100)
     secs = time.perf_counter() - t
-    e = peer.energy(jnp.asarray(sol.x.reshape(X0.shape)), rnd_, valid)[0]
+    e = peer.energy(jnp.asarray(sol.x.reshape(X0.shape)), rnd, valid)[0]
     out["lbfgsb_100"] = dict(seconds=secs, steps=int(sol.nit), energy=float(e))
     prep = _nrd._prepare(tmpl, 0)
 
