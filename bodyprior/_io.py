@@ -157,11 +157,14 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 
 
 def _write_zip(path: str | os.PathLike, metadata: dict, members: dict[str, bytes]) -> None:
-    """Writes `metadata.json` and `members` (stored, uncompressed) to `path` atomically."""
+    """Writes `metadata.json` (with the sha256 of `members["leaves.eqx"]` added as
+    "leaves_sha256", which `_read_zip` checks) and `members` (stored, uncompressed) to `path`
+    atomically."""
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise ValueError(f"`path`: directory {directory!r} does not exist.")
+    metadata = {**metadata, "leaves_sha256": hashlib.sha256(members["leaves.eqx"]).hexdigest()}
     with atomic_open(path, "wb") as f:
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
             zf.writestr("metadata.json", json.dumps(metadata, indent=1))

@@ -78,7 +78,6 @@ def save_prior(path: str | os.PathLike, prior: ShapePrior | PosePrior | Geometry
         "kind": kind,
         "item_shape": list(prior.mean.shape),
         "config": prior.config.to_dict(),
-        "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
     _write_zip(os.fspath(path), meta, {"leaves.eqx": payload})
 
@@ -133,7 +132,6 @@ def save_checkpoint(checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records) -
         "config": _resume_config(cfg),
         "key": [int(k) for k in np.asarray(key)],
         "data_sha256": _fingerprint(u),
-        "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
     members = {"leaves.eqx": payload, "records.npy": buf.getvalue()}
     _write_zip(checkpoint_path(checkpoint_dir, tag), meta, members)

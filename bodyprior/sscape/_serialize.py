@@ -15,7 +15,6 @@ never touches the network.
 
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 
@@ -65,7 +64,6 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
         "parents": list(model.parents),
         "joint_names": list(model.joint_names),
         "leaves": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in arrays.items()},
-        "leaves_sha256": hashlib.sha256(payload).hexdigest(),
     }
     _write_zip(path, metadata, {"leaves.eqx": payload})
 
