@@ -21,7 +21,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior import sscape  # noqa: E402
+from bodyprior import (
+    registration,  # noqa: E402
+    sscape,  # noqa: E402
+)
 from bodyprior.sscape import _fit  # noqa: E402
 
 
@@ -41,14 +44,14 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", required=True)
     args = ap.parse_args()
-    tmpl = sscape.registration_template()
+    tmpl = registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop = bp.sample_population(jax.random.PRNGKey(0), 28, body=body, progress=False)
     gt = np.asarray(tmpl.restrict(pop.vertices), np.float64)
     model = sscape.learn(jnp.asarray(gt[:24]), tmpl.faces, n_components=20, **tmpl.rig_kwargs())
-    scans, _ = sscape.simulate_scans(
+    scans, _ = registration.simulate_scans(
         jax.random.PRNGKey(5), np.asarray(pop.vertices[24:28]), body.faces, body.landmark_index,
-        body.landmark_names, sscape.ScannerConfig(n_points=6449), progress=False,
+        body.landmark_names, registration.ScannerConfig(n_points=6449), progress=False,
     )  # fmt: skip
     cfg = _fit.FitConfig(max_passes=3, landmark_weight=0.3, pose_prior=100.0)
     take = lambda i: jax.tree_util.tree_map(lambda a: a[i], scans)  # noqa: E731

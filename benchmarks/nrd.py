@@ -4,9 +4,9 @@ Same problem on both sides, in the same run: the full-resolution template (13,38
 aligned to a simulated laser scan (~40k points) by the landmark similarity, the paper's weight
 schedule (one round α = 0, β = 1e6, γ = 1e-3, then α = 1 and β, γ x 0.25 per round until
 β <= 1e3), correspondences recomputed every round with the same rule and the same code
-(`bodyprior.sscape._nrd._correspond`, jitted), the same energy (`_nrd._system` assembles the
+(`bodyprior.registration._nrd._correspond`, jitted), the same energy (`_nrd._system` assembles the
 round's normal equations; scipy gets them as a sparse matrix: f = Σ_c x_cᵀ H x_c − 2 x_cᵀ R_c,
-∇f = 2 (H X − R)), float64, and the same early-stopping rule. bodyprior: `bodyprior.sscape.nrd`
+∇f = 2 (H X − R)), float64, and the same early-stopping rule. bodyprior: `bodyprior.registration.nrd`
 (one jitted call for all rounds; PCG with a two-level preconditioner). L-BFGS-B (the paper's
 optimiser): `scipy.optimize.minimize(method="L-BFGS-B")` with humanshape's settings (m = 5,
 factr = 1e7, pgtol = 1e-5), warm-started across rounds, (a) 100 iterations per round as
@@ -45,7 +45,7 @@ import scipy.optimize  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior.sscape import _nrd  # noqa: E402
+from bodyprior.registration import _nrd
 from bodyprior.sscape._fit import fit_similarity  # noqa: E402
 
 
@@ -54,14 +54,14 @@ def _block(x):
 
 
 def make_problem(seed: int, decimated: bool, n_points: int, n_scans: int = 1):
-    tmpl = bp.sscape.registration_template(decimated=decimated)
+    tmpl = bp.registration.registration_template(decimated=decimated)
     body = bp.load_default_body()
     pop = bp.sample_population(jr.PRNGKey(seed), n_scans, progress=False)
-    cfg = bp.sscape.ScannerConfig(n_points=n_points)
+    cfg = bp.registration.ScannerConfig(n_points=n_points)
     scans, truths = [], []
     for i in range(n_scans):
         v = pop.vertices[i]
-        scan, _ = bp.sscape.simulate_scan(
+        scan, _ = bp.registration.simulate_scan(
             jr.PRNGKey(seed + 100 + i),
             v,
             body.faces,
@@ -327,12 +327,12 @@ def main():
 
     # bodyprior
     t = time.perf_counter()
-    out = _block(bp.sscape.nrd(init, tmpl, scan, config=cfg))
+    out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
     first = time.perf_counter() - t
     times = []
     for _ in range(args.repeats):
         t = time.perf_counter()
-        out = _block(bp.sscape.nrd(init, tmpl, scan, config=cfg))
+        out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
         times.append(time.perf_counter() - t)
     n = int(out.n_rounds)
     res["bodyprior_s"] = float(np.median(times))
@@ -385,7 +385,7 @@ def main():
         s = args.seed + 10 + i
         tmpl_i, (scan_i,), (truth_i,), (init_i,) = make_problem(s, False, args.n_points)
         t = time.perf_counter()
-        o = _block(bp.sscape.nrd(init_i, tmpl_i, scan_i, config=cfg))
+        o = _block(bp.registration.nrd(init_i, tmpl_i, scan_i, config=cfg))
         t_bp = time.perf_counter() - t
         peer_i = Peer(tmpl_i, scan_i, init_i, cfg)
         peer_i.run(3)
@@ -436,7 +436,7 @@ def main():
 
     # solver alternatives on the last round's system, started from the previous round's solution
     cfg_prev = eqx.tree_at(lambda c: c.max_rounds, cfg, max(cfg.n_data_rounds - 1, 1))
-    prev = _block(bp.sscape.nrd(init, tmpl, scan, config=cfg_prev))
+    prev = _block(bp.registration.nrd(init, tmpl, scan, config=cfg_prev))
     centre = init.mean(0)
     Xp = _internal_X(prev, init, centre)
     idx, valid = peer.corr(Xp)
@@ -447,15 +447,15 @@ def main():
 
     # batched throughput on the decimated template
     tmpl_d, scans, truths, inits = make_problem(args.seed + 1, True, 19347, args.batch)
-    batch = bp.sscape.pad_scans(scans)
+    batch = bp.registration.pad_scans(scans)
     init_b = jnp.stack(inits)
     t = time.perf_counter()
-    ob = _block(bp.sscape.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+    ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
     first = time.perf_counter() - t
     bt = []
     for _ in range(max(1, args.repeats - 1)):
         t = time.perf_counter()
-        ob = _block(bp.sscape.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+        ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
         bt.append(time.perf_counter() - t)
     res["batch"] = dict(
         n_vertices=int(tmpl_d.n_vertices),
@@ -465,9 +465,9 @@ def main():
         scans_per_minute=60 * args.batch / float(np.median(bt)),
         gt_error_mm=[gt_error_mm(ob.vertices[i], truths[i], tmpl_d) for i in range(args.batch)],
     )
-    _block(bp.sscape.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
     t = time.perf_counter()
-    _block(bp.sscape.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
     res["batch"]["single_scan_s"] = time.perf_counter() - t
     print("batch", res["batch"], flush=True)
     res["machine"]["load_average_end"] = os.getloadavg()

@@ -46,16 +46,11 @@ def main():
     args = ap.parse_args()
 
     import bodyprior as bp
-    from bodyprior.sscape import (
-        FitConfig,
-        ScannerConfig,
-        fit_sscape,
-        fit_sscape_batch,
-        simulate_scans,
-    )
+    from bodyprior.registration import ScannerConfig, simulate_scans
+    from bodyprior.sscape import FitConfig, fit_sscape, fit_sscape_batch
 
     cfg = FitConfig()
-    tmpl = bp.sscape.registration_template()
+    tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(jr.PRNGKey(args.seed), args.n_train, body=body, progress=False)
     model = bp.sscape.learn(

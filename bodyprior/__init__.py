@@ -4,6 +4,7 @@ Public API. Implementation lives in private modules; model families are subpacka
 (`bodyprior.sscape`). Units are metres and radians; the world frame is Z up, the body facing -Y.
 """
 
+from . import registration as registration  # noqa: I001  (the core before the families)
 from . import dspp as dspp
 from . import sscape as sscape
 from ._body import (
@@ -60,6 +61,17 @@ from ._metrics import (
     mean_vertex_distance_metric as mean_vertex_distance_metric,
     pairwise_distances as pairwise_distances,
     pose_geodesic_metric as pose_geodesic_metric,
+)
+from ._mocap import (
+    EULER_ORDER as EULER_ORDER,
+    POSE_JOINTS as POSE_JOINTS,
+    PoseSet as PoseSet,
+    find_mocap_dir as find_mocap_dir,
+    load_mocap as load_mocap,
+    pose_euler as pose_euler,
+    render_poses as render_poses,
+    rig_pose as rig_pose,
+    split_by_clip as split_by_clip,
 )
 from ._population import (
     Population as Population,

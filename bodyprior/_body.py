@@ -70,7 +70,7 @@ def phenotype_vector(**values: float) -> np.ndarray:
     return np.array([float(values.get(k, 0.5)) for k in PHENOTYPES])
 
 
-def variation_weights(phenotypes: Float[Array, "11"], variation_labels: tuple[str, ...]) -> Float[Array, "24"]:
+def variation_weights(phenotypes: Float[Array, 11], variation_labels: tuple[str, ...]) -> Float[Array, 24]:
     """Per-variation weights (anny's `phenotype_blendshape_weights` before the product rule).
 
     Interpolated features get piecewise-linear hat weights over evenly spaced anchors (values are clamped to
@@ -285,12 +285,12 @@ def load_default_body(
 # kernels (one body; vmap for batches)
 
 
-def target_weights(variation_w: Float[Array, "24"], masks: Float[Array, "T 24"]) -> Float[Array, " T"]:
+def target_weights(variation_w: Float[Array, 24], masks: Float[Array, "T 24"]) -> Float[Array, " T"]:
     """MakeHuman's product rule: a target's weight is the product of the weights of the variations it names."""
     return jnp.prod(variation_w * masks + (1.0 - masks), axis=-1)
 
 
-def macro_coefficients(body: DefaultBody, phenotypes: Float[Array, "11"]) -> Float[Array, " T"]:
+def macro_coefficients(body: DefaultBody, phenotypes: Float[Array, 11]) -> Float[Array, " T"]:
     """Weights of the 408 non-breast phenotype targets (product rule over variation weights)."""
     w = variation_weights(phenotypes, body.variation_labels).astype(body.macro_masks.dtype)
     return target_weights(w, body.macro_masks)
@@ -332,7 +332,7 @@ def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_act
 
 def rest_shape(
     body: DefaultBody,
-    phenotypes: Float[Array, "11"],
+    phenotypes: Float[Array, 11],
     local_changes: Float[Array, " C"] | None = None,
     facial_actions: Float[Array, " A"] | None = None,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
@@ -364,9 +364,9 @@ def pose_matrices(pose, n_joints: int, pose_rep: str):
 
 def evaluate(
     body: DefaultBody,
-    phenotypes: Float[Array, "11"],
+    phenotypes: Float[Array, 11],
     pose: Float[Array, "J ..."] | None = None,
-    root_translation: Float[Array, "3"] | None = None,
+    root_translation: Float[Array, 3] | None = None,
     *,
     local_changes: Float[Array, " C"] | None = None,
     facial_actions: Float[Array, " A"] | None = None,

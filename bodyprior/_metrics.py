@@ -34,8 +34,8 @@ __all__ = [
 
 def _default_euler_order() -> str:
     # The pose convention is owned by the mocap loader; imported lazily so that this generic module
-    # does not depend on the import order of `bodyprior.dspp`.
-    from .dspp._mocap import EULER_ORDER
+    # does not import the body (and its asset) on import.
+    from ._mocap import EULER_ORDER
 
     return EULER_ORDER
 
@@ -94,8 +94,8 @@ def pose_geodesic_metric(
     **Arguments:**
 
     - `a`, `b`: Euler angles, shape `(J, 3)` each, radians.
-    - `order`: Euler order (static string); default `bodyprior.dspp.EULER_ORDER`, the order of
-      [`bodyprior.dspp.PoseSet`][] poses.
+    - `order`: Euler order (static string); default `bodyprior.EULER_ORDER`, the order of
+      [`bodyprior.PoseSet`][] poses.
 
     **Returns:** scalar mean angle, radians.
     """

@@ -6,7 +6,7 @@ diversity against held-out real data, alongside PCA baselines fitted to the same
 Data. Shapes: `bodyprior.sample_population` (the CAESAR stand-in, seed `--seed`) on the decimated
 6,449-vertex topology; the bodies are split at random (seed) into train (80 %) and test (20 %).
 Poses: every BVH clip under `--mocap` (default `../shared/data/mocap`) through
-`bodyprior.dspp.load_mocap` at 4 frames/s, split by whole clips (`split_by_clip`, 20 % test).
+`bp.load_mocap` at 4 frames/s, split by whole clips (`split_by_clip`, 20 % test).
 
 Methods: (a) `aegan` the DSPP prior; (b) `geomgan` a GAN whose discriminator sees geometry (PointNet
 for shapes, MLP on Euler angles for poses); (c) `pca` Gaussian sampling of a PCA space with as many
@@ -92,8 +92,8 @@ def _shape_data(seed: int, n: int, progress: bool):
 
 def _pose_data(mocap: Path, subdirs, seed: int, progress: bool):
     paths = [mocap / s for s in subdirs] if subdirs else [mocap]
-    poses = dspp.load_mocap([str(p) for p in paths], fps=4.0, progress=progress)
-    train, test = dspp.split_by_clip(poses, 0.2, seed=seed)
+    poses = bp.load_mocap([str(p) for p in paths], fps=4.0, progress=progress)
+    train, test = bp.split_by_clip(poses, 0.2, seed=seed)
     return (np.asarray(train.euler, np.float32), np.asarray(test.euler, np.float32),
             poses.n_poses, len(poses.clip_names))  # fmt: skip
 
@@ -263,7 +263,7 @@ def run(args) -> dict:
     bp.save_png(out_dir / "shape_samples.png", img)
     body = bp.load_default_body("cmu_mb")
     poses = np.concatenate([samples["pose"][m][:nr] for m in show])
-    dspp.render_poses(body, poses, out_dir / "pose_samples.png", labels=labels, ncols=nr,
+    bp.render_poses(body, poses, out_dir / "pose_samples.png", labels=labels, ncols=nr,
                       cell_size=(200, 130))  # fmt: skip
     timings["render_s"] = time.perf_counter() - t
 

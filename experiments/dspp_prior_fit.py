@@ -19,7 +19,7 @@ validation / test bodies (the sampler draws bodies i.i.d., so the split is rando
 and the DSPP prior are trained on the training bodies only; every weight is chosen on the
 validation bodies (grid search, lowest mean vertex error); the test bodies are used once, at the
 end. A landmark whose full-mesh vertex was removed by the decimation is mapped to the nearest kept
-vertex on the rest template (the rule of `bodyprior.sscape.registration_template`, whose landmark
+vertex on the rest template (the rule of `bodyprior.registration.registration_template`, whose landmark
 indices these equal).
 
 Outputs in `--out`: `metrics.json` (errors in mm per method, the validation grids, the chosen
@@ -94,7 +94,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def landmarks_on_decimated(body, vertex_map: np.ndarray) -> np.ndarray:
     """Decimated-mesh vertex of each landmark: the vertex itself if kept, else the nearest kept
-    vertex on the rest template (as `bodyprior.sscape.registration_template`)."""
+    vertex on the rest template (as `bodyprior.registration.registration_template`)."""
     tmpl = np.asarray(body.template, np.float64)
     lm = tmpl[np.asarray(body.landmark_index)]
     d = np.linalg.norm(lm[:, None] - tmpl[vertex_map][None], axis=-1)

@@ -4,7 +4,7 @@ Protocol (after Helten et al. 2013, as the paper follows it), on simulated data:
 
 1. **Test subjects.** Population bodies (`bodyprior.sample_population`, a seed separate from the
    training population), half male and half female, each captured twice, from the front and from the
-   back, in two different non-trivial poses (`bodyprior.sscape.capture_poses`: arms spread and
+   back, in two different non-trivial poses (`bodyprior.registration.capture_poses`: arms spread and
    raised, elbows bent, legs apart, turned by up to 10 degrees).
 2. **Depth images.** A Kinect-like camera (512 x 424, fx = fy = 365 px) 2.4 m away renders the exact
    depth of the full-resolution posed body with depth noise sigma = 1.5 mm * z^2 (8.6 mm at 2.4 m)
@@ -21,12 +21,12 @@ Protocol (after Helten et al. 2013, as the paper follows it), on simulated data:
    sampler, `scheme="anny"`).
 4. **Fitting.** `bodyprior.sscape.fit_depth`: independent fits per image, then one shared shape and
    a pose per image.
-5. **Error.** Per-vertex Euclidean distance (mm, `bodyprior.sscape.gt_error`) between the fitted
+5. **Error.** Per-vertex Euclidean distance (mm, `bodyprior.registration.gt_error`) between the fitted
    *rest shape* (the shared shape in the model's zero pose, times the fitted scale, rigidly aligned
    to the truth) and the subject's true rest shape restricted to the template; this is the shape
    accuracy Helten et al. measure against the laser-scan fit. Also reported: the error of the fitted
    *posed* meshes against the true posed bodies in each image's frame (hands excluded: their pose is
-   not fitted). Cumulative curves (`bodyprior.sscape.cumulative_curve`, 0-50 mm) are the paper's
+   not fitted). Cumulative curves (`bodyprior.registration.cumulative_curve`, 0-50 mm) are the paper's
    Fig. 5; per-vertex error maps of one male and one female subject are Fig. 6.
 
 Run: `python experiments/sscape_depth.py --quick --out out/depth` (minutes) or `--full`.
@@ -51,18 +51,15 @@ import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior.sscape import (  # noqa: E402
-    DepthFitConfig,
+from bodyprior.registration import (
     capture_poses,
     cumulative_curve,
-    fit_depth,
     gt_error,
     kinect_pair,
-    learn,
     registration_template,
     simulate_depth_scan,
-    truncate,
 )
+from bodyprior.sscape import DepthFitConfig, fit_depth, learn, truncate
 from bodyprior.sscape._fit import FitConfig  # noqa: E402
 from bodyprior.sscape._posture import learn_normalized  # noqa: E402
 
@@ -345,7 +342,7 @@ def main(argv=None):
             name = f"fig6_{sex}_{norm}.png"
             title = f"{sex}, {norm}: mean {e.mean():.1f} mm"
             path = os.path.join(args.out, name)
-            bp.sscape.error_colormap_png(
+            bp.registration.error_colormap_png(
                 path, subjects[s]["rest"], faces, e, vmax=30.0, title=title
             )
             fig6[name] = float(e.mean())

@@ -8,7 +8,7 @@ population scanned by the virtual laser scanner instead of CAESAR:
    learn the *initial* S-SCAPE space (the stand-in for the space the paper starts from, learned on a
    smaller, different data set), the next `n_train` are the training scans, the last `n_test` the
    test scans. Scans: `simulate_scans(fold_in(key, 1), ...)` with the default
-   [`bodyprior.sscape.ScannerConfig`][] (19,347 points, 1 mm noise, 2 % outliers, 7.5 mm landmark
+   [`bodyprior.registration.ScannerConfig`][] (19,347 points, 1 mm noise, 2 % outliers, 7.5 mm landmark
    noise, 5 % landmarks missing).
 2. **Registration** of every scan (train and test) by the paper's four variants (Fig. 1): S-SCAPE
    fit alone (`fit_sscape_batch` with the initial space), NRD from the static template aligned by
@@ -54,7 +54,10 @@ import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior import sscape  # noqa: E402
+from bodyprior import (
+    registration,  # noqa: E402
+    sscape,  # noqa: E402
+)
 
 SIZES = {
     # points: scan points (the paper's 19,347 = 3 x 6,449 everywhere: NRD's point-to-point data term
@@ -149,7 +152,7 @@ def _subsample(scans, n_points: int, seed: int = 42):
     if n_points >= p:
         return scans
     idx = jnp.asarray(np.sort(np.random.default_rng(seed).choice(p, n_points, replace=False)))
-    return sscape.Scan(
+    return registration.Scan(
         scans.points[:, idx], scans.normals[:, idx], scans.point_mask[:, idx], scans.landmarks,
         scans.landmark_mask, scans.landmark_names,
     )  # fmt: skip
@@ -187,15 +190,15 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
     }
     inits["S-SCAPE + NRD CW"] = inits["S-SCAPE + NRD"]
     cfgs = {
-        "NRD": sscape.NRDConfig(head_rule=head_rule),
-        "S-SCAPE + NRD": sscape.NRDConfig(head_rule=head_rule),
-        "S-SCAPE + NRD CW": sscape.NRDConfig(constant_weights=True, head_rule=head_rule),
+        "NRD": registration.NRDConfig(head_rule=head_rule),
+        "S-SCAPE + NRD": registration.NRDConfig(head_rule=head_rule),
+        "S-SCAPE + NRD CW": registration.NRDConfig(constant_weights=True, head_rule=head_rule),
     }
     for name in ("NRD", "S-SCAPE + NRD", "S-SCAPE + NRD CW"):
         t0 = time.perf_counter()
         res = []
         for i in tqdm(range(n), desc=name, disable=not progress, unit="scan"):
-            r = sscape.nrd(inits[name][i], tmpl, _index(scans, i), config=cfgs[name], throw=False)
+            r = registration.nrd(inits[name][i], tmpl, _index(scans, i), config=cfgs[name], throw=False)
             res.append(np.asarray(r.vertices))
         out[name] = np.stack(res)
         times[KEYS[name] + "_s"] = time.perf_counter() - t0
@@ -206,11 +209,11 @@ def errors(regs, scans, gt, tmpl):
     """Per-vertex errors (mm) of every method: the paper's (with valid mask) and against GT."""
     out = {}
     for name, verts in regs.items():
-        fe = sscape.fitting_error_batch(jnp.asarray(verts), scans, faces=tmpl.faces)
+        fe = registration.fitting_error_batch(jnp.asarray(verts), scans, faces=tmpl.faces)
         out[name] = dict(
             fit=np.asarray(fe.error_mm),
             valid=np.asarray(fe.valid),
-            gt=np.asarray(sscape.gt_error(jnp.asarray(verts), jnp.asarray(gt))),
+            gt=np.asarray(registration.gt_error(jnp.asarray(verts), jnp.asarray(gt))),
         )
     return out
 
@@ -232,8 +235,8 @@ def _mean(x) -> float:
 
 def _summary(e) -> dict:
     fit, valid, gt = e["fit"], e["valid"], e["gt"]
-    c20 = sscape.cumulative_curve(fit, [5.0, 10.0, 20.0], valid=valid)
-    g = sscape.cumulative_curve(gt, [5.0, 10.0, 20.0])
+    c20 = registration.cumulative_curve(fit, [5.0, 10.0, 20.0], valid=valid)
+    g = registration.cumulative_curve(gt, [5.0, 10.0, 20.0])
     return dict(
         gt_error_mm_mean=float(gt.mean()),
         gt_error_mm_median=float(np.median(gt)),
@@ -336,7 +339,7 @@ def main(argv=None) -> dict:
     t_start = time.perf_counter()
     key = jax.random.PRNGKey(args.seed)
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    tmpl = sscape.registration_template()
+    tmpl = registration.registration_template()
     n_init, n_train, n_test = size["n_init"], size["n_train"], size["n_test"]
     n_all = n_init + n_train + n_test
     t0 = time.perf_counter()
@@ -349,13 +352,13 @@ def main(argv=None) -> dict:
     gt = gt_all[scan_bodies]
 
     t0 = time.perf_counter()
-    cfg = sscape.ScannerConfig(n_points=size["points"])
-    scans, truths = sscape.simulate_scans(
+    cfg = registration.ScannerConfig(n_points=size["points"])
+    scans, truths = registration.simulate_scans(
         jax.random.fold_in(key, 1), full[scan_bodies], body.faces, body.landmark_index,
         body.landmark_names, cfg, progress=progress,
     )  # fmt: skip
     t_scan = time.perf_counter() - t0
-    sscape.check_scan(scans)
+    registration.check_scan(scans)
 
     k = args.components
     model0 = sscape.learn(jnp.asarray(init_meshes), tmpl.faces, n_components=k, **tmpl.rig_kwargs())
@@ -377,14 +380,14 @@ def main(argv=None) -> dict:
 
     # Figures: cumulative curves (Fig. 1a) by both definitions and both ranges.
     for kind, label in (("fit", "paper's fitting error"), ("gt", "ground-truth error")):
-        for thr, tag in ((sscape.THRESHOLDS_20MM, "20mm"), (sscape.THRESHOLDS_50MM, "50mm")):
+        for thr, tag in ((registration.THRESHOLDS_20MM, "20mm"), (registration.THRESHOLDS_50MM, "50mm")):
             curves = {
-                m: sscape.cumulative_curve(
+                m: registration.cumulative_curve(
                     errs[m][kind], thr, valid=errs[m]["valid"] if kind == "fit" else None
                 )
                 for m in METHODS
             }
-            sscape.plot_cumulative_curves(
+            registration.plot_cumulative_curves(
                 curves, thr, os.path.join(out, f"cumulative_{kind}_{tag}.png"),
                 title=f"{label}, {len(gt)} simulated scans",
             )  # fmt: skip
@@ -392,9 +395,9 @@ def main(argv=None) -> dict:
     for m in METHODS:
         for kind in ("fit", "gt"):
             e = errs[m][kind]
-            mv = sscape.mean_vertex_error(e, errs[m]["valid"] if kind == "fit" else None)
+            mv = registration.mean_vertex_error(e, errs[m]["valid"] if kind == "fit" else None)
             mv = np.where(np.isfinite(mv), mv, 0.0)
-            sscape.error_colormap_png(
+            registration.error_colormap_png(
                 os.path.join(out, f"mean_error_{kind}_{KEYS[m]}.png"), tmpl.vertices, tmpl.faces,
                 mv, vmax=20.0, title=f"{m}: mean {'fitting' if kind == 'fit' else 'GT'} error [mm]",
             )  # fmt: skip

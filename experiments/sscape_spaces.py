@@ -51,7 +51,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior import sscape  # noqa: E402
+from bodyprior import (
+    registration,  # noqa: E402
+    sscape,  # noqa: E402
+)
 from bodyprior.sscape._fit import FitConfig  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -161,7 +164,7 @@ def main(argv=None):
     times = {}
     key = jax.random.PRNGKey(args.seed)
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    tmpl = sscape.registration_template()
+    tmpl = registration.registration_template()
     rig = tmpl.rig_kwargs()
     comps = size["components"]
     metrics: dict = {"mode": "quick" if args.quick else "full", "seed": args.seed, "sizes": {
@@ -180,9 +183,9 @@ def main(argv=None):
     )
     rest = np.asarray(tmpl.restrict(rest_all), np.float64)
     scan_idx = np.arange(n_init, n_init + n_boot + n_test)
-    scans, _ = sscape.simulate_scans(
+    scans, _ = registration.simulate_scans(
         jax.random.fold_in(key, 1), full[scan_idx], body.faces, body.landmark_index,
-        body.landmark_names, sscape.ScannerConfig(n_points=size["points"]), progress=progress,
+        body.landmark_names, registration.ScannerConfig(n_points=size["points"]), progress=progress,
     )  # fmt: skip
     boot = np.arange(n_boot)  # indices into the scans
     test = np.arange(n_boot, n_boot + n_test)
@@ -224,7 +227,7 @@ def main(argv=None):
     # The registration experiment's settings: its fit priors (landmark term, pose prior) and NRD
     # without humanshape's head rule (the simulated heads are real; see docs/results_sscape.md).
     fit_config = FitConfig(max_passes=size["fit_passes"], **FIT_PRIORS)
-    nrd_config = sscape.NRDConfig(head_rule=False)
+    nrd_config = registration.NRDConfig(head_rule=False)
     metrics["registration_config"] = {"fit": {"max_passes": size["fit_passes"], **FIT_PRIORS},
                                       "nrd": {"head_rule": False}}  # fmt: skip
 
@@ -256,10 +259,10 @@ def main(argv=None):
     final_aligned, _ = sscape.procrustes_align(jnp.asarray(last.registration.vertices))
     spaces = [p.model for p in res.passes[1:]] + [res.model]
     for r, p in enumerate(res.passes):
-        fe = sscape.fitting_error_batch(p.registration.vertices, boot_scans, faces=tmpl.faces)
-        ge = np.asarray(sscape.gt_error(p.registration.vertices, gt_boot))
-        curves_fit[f"iteration {r}"] = sscape.cumulative_curve(fe.error_mm, valid=fe.valid)
-        curves_gt[f"iteration {r}"] = sscape.cumulative_curve(ge)
+        fe = registration.fitting_error_batch(p.registration.vertices, boot_scans, faces=tmpl.faces)
+        ge = np.asarray(registration.gt_error(p.registration.vertices, gt_boot))
+        curves_fit[f"iteration {r}"] = registration.cumulative_curve(fe.error_mm, valid=fe.valid)
+        curves_gt[f"iteration {r}"] = registration.cumulative_curve(ge)
         valid = np.asarray(fe.valid)
         space = spaces[r]  # learned from this pass's accepted registrations
         ms = _ms(comps, space.n_components + 1)
@@ -273,7 +276,7 @@ def main(argv=None):
         boot_m["passes"].append({
             "accepted": p.n_accepted,
             "fitting_error_mm_mean": float(np.asarray(fe.error_mm)[valid].mean()),
-            "fitting_frac_below_10mm": float(sscape.cumulative_curve(fe.error_mm, [10.0],
+            "fitting_frac_below_10mm": float(registration.cumulative_curve(fe.error_mm, [10.0],
                                                                      valid=fe.valid)[0]),
             "gt_error_mm_mean": float(ge.mean()),
             "gt_frac_below_10mm": float((ge <= 10.0).mean()),
@@ -282,12 +285,12 @@ def main(argv=None):
             "space_generalization_test_gt_mm": _mm(gen),
             "space_specificity_vs_last_pass_mm": _mm(spec.mean),
         })  # fmt: skip
-    sscape.plot_cumulative_curves(
-        curves_fit, sscape.THRESHOLDS_20MM, os.path.join(out, "bootstrap_fitting_error.png"),
+    registration.plot_cumulative_curves(
+        curves_fit, registration.THRESHOLDS_20MM, os.path.join(out, "bootstrap_fitting_error.png"),
         title=f"fitting error per bootstrapping pass ({n_boot} scans)", inset=(5, 15),
     )  # fmt: skip
-    sscape.plot_cumulative_curves(
-        curves_gt, sscape.THRESHOLDS_20MM, os.path.join(out, "bootstrap_gt_error.png"),
+    registration.plot_cumulative_curves(
+        curves_gt, registration.THRESHOLDS_20MM, os.path.join(out, "bootstrap_gt_error.png"),
         title=f"ground-truth error per bootstrapping pass ({n_boot} scans)", inset=(5, 15),
     )  # fmt: skip
     bl = boot_m["passes"]

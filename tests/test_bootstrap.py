@@ -9,11 +9,10 @@ import pytest
 from _toybody import make_toy_model
 
 import bodyprior as bp
+from bodyprior.registration import RegistrationTemplate, Scan
 from bodyprior.sscape import (
     GateConfig,
     Registration,
-    RegistrationTemplate,
-    Scan,
     body_parts,
     bootstrap,
     learn,

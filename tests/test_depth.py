@@ -11,17 +11,16 @@ import numpy as np
 import pytest
 
 import bodyprior as bp
-from bodyprior.sscape import (
+from bodyprior.registration import (
     DepthCamera,
-    DepthFitConfig,
     depth_normals,
     depth_scan_truth,
     depth_to_scan,
-    fit_depth,
     kinect_pair,
     registration_template,
     render_depth,
 )
+from bodyprior.sscape import DepthFitConfig, fit_depth
 from bodyprior.sscape._fit import FitConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -222,7 +221,7 @@ def test_fit_depth_recovers_shape_and_pose(problem):
     # Posed error (hands excluded): the back image cannot see the toes (their pose is a guess), so
     # its bound is looser. Measured: 6.0 mm front, 13.2-16.0 mm back (toes ~60 mm), 4.9 mm rest.
     for k, bound in ((0, 8.0), (1, 20.0)):
-        err = np.asarray(bp.sscape.gt_error(fit.vertices[k], truth[k]))[~hand]
+        err = np.asarray(bp.registration.gt_error(fit.vertices[k], truth[k]))[~hand]
         assert err.mean() < bound, (k, err.mean())
     rest_true = np.asarray(bp.sscape.shape_vertices(model, coeffs))
     rest_err = np.linalg.norm(np.asarray(fit.rest_vertices) * float(fit.scale) - rest_true, axis=1)

@@ -184,8 +184,8 @@ def test_pca_baselines():
         else:
             assert np.abs(c).max() <= 3.0 + 1e-4 and abs(c.std() - np.sqrt(3.0)) < 0.1
     # the top-k (Lanczos) path used for large data agrees with the exact SVD
+    from bodyprior._stats import pca_host as _pca_host
     from bodyprior.dspp._sample import _pca_top
-    from bodyprior.sscape._learn import _pca_host
 
     flat = data.reshape(50, -1)
     _, c_ex, s_ex = _pca_host(flat)

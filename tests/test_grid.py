@@ -1,4 +1,4 @@
-"""The grid radius search (`bodyprior.sscape._grid`) equals brute force, including points on the
+"""The grid radius search (`bodyprior.registration._grid`) equals brute force, including points on the
 search sphere, queries outside the grid and grids clamped at `_GRID_AXIS` cells per axis."""
 
 import jax
@@ -8,7 +8,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from bodyprior.sscape._grid import _GRID_AXIS, nearest_within  # noqa: E402
+from bodyprior.registration._grid import _GRID_AXIS, nearest_within  # noqa: E402
 
 
 def _brute(queries, points, mask, radius, qn=None, pn=None, cos_max=None):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import bodyprior as bp
-from bodyprior.dspp import (
+from bodyprior import (
     EULER_ORDER,
     POSE_JOINTS,
     PoseSet,
@@ -20,7 +20,7 @@ from bodyprior.dspp import (
     rig_pose,
     split_by_clip,
 )
-from bodyprior.dspp import _mocap as M
+from bodyprior import _mocap as M
 
 
 def _mocap_dir() -> Path | None:

@@ -9,14 +9,14 @@ import pytest
 from _toybody import tube_mesh
 
 import bodyprior as bp
-from bodyprior.sscape import _nrd
+from bodyprior.registration import _nrd
 from bodyprior.sscape._fit import _compatible_search_jit, compatible_correspondences
 
 N_AROUND, N_RINGS = 20, 28
 N_POINTS = 12000
 
 
-def _toy_template() -> bp.sscape.RegistrationTemplate:
+def _toy_template() -> bp.registration.RegistrationTemplate:
     verts, faces = tube_mesh(N_AROUND, N_RINGS, radius=0.12, height=1.0)
     V = verts.shape[0]
     z = verts[:, 2]
@@ -27,7 +27,7 @@ def _toy_template() -> bp.sscape.RegistrationTemplate:
     ring = np.arange(2, N_RINGS - 2, 3)
     lm = np.concatenate([r * N_AROUND + np.array([0, 7, 14]) for r in ring]).astype(np.int32)
     lm = np.concatenate([lm, [1]])  # one landmark on a hand vertex: γ = 0 there
-    return bp.sscape.RegistrationTemplate(
+    return bp.registration.RegistrationTemplate(
         vertices=jnp.asarray(verts),
         faces=jnp.asarray(faces),
         vertex_map=jnp.arange(V, dtype=jnp.int32),
@@ -63,7 +63,7 @@ def _scan(key, verts, faces, tmpl, lm_sigma=0.003, n=N_POINTS):
     lm = jnp.asarray(verts)[tmpl.landmark_index] + lm_sigma * jr.normal(
         kl, (len(tmpl.landmark_names), 3)
     )
-    return bp.sscape.Scan(
+    return bp.registration.Scan(
         points=pts,
         normals=normals,
         point_mask=jnp.ones(n, bool),
@@ -141,7 +141,7 @@ def test_identity_when_scan_is_template(setup, monkeypatch):
     pad = N_POINTS - n_v  # same shapes as the other scan: no recompilation
     pts = jnp.concatenate([v, jnp.repeat(v[:1], pad, 0)])
     nrm = bp.vertex_normals(v, tmpl.faces)
-    scan = bp.sscape.Scan(
+    scan = bp.registration.Scan(
         points=pts,
         normals=jnp.concatenate([nrm, jnp.repeat(nrm[:1], pad, 0)]),
         point_mask=jnp.arange(N_POINTS) < n_v,
@@ -191,7 +191,7 @@ def test_energy_gradient_and_normal_equations(getkey):
     normal equations (so the solver minimises exactly the stated energy)."""
     verts, faces = tube_mesh(5, 4, radius=0.1, height=0.3)
     V = verts.shape[0]
-    tmpl_like = bp.sscape.RegistrationTemplate(
+    tmpl_like = bp.registration.RegistrationTemplate(
         vertices=jnp.asarray(verts), faces=jnp.asarray(faces), vertex_map=jnp.arange(V),
         landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
         hand_mask=jnp.zeros(V, bool).at[:3].set(True),
@@ -325,7 +325,7 @@ def test_variants(setup):
 def _replace(scan, **fields):
     kw = {f: getattr(scan, f) for f in ("points", "normals", "point_mask", "landmarks")}
     kw.update(landmark_mask=scan.landmark_mask, landmark_names=scan.landmark_names, **fields)
-    return bp.sscape.Scan(**kw)
+    return bp.registration.Scan(**kw)
 
 
 def test_bad_inputs(setup):

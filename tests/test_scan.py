@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import bodyprior as bp
-from bodyprior import sscape
+from bodyprior import registration, sscape
 
 # The rest body (A-pose) of the default body: a full-resolution subject without any compile cost.
 
@@ -27,13 +27,13 @@ def subject(body):
 @pytest.fixture(scope="module")
 def raw(subject):
     """All raw hits (no sub-sampling), exact normals: for coverage statistics."""
-    cfg = sscape.ScannerConfig(n_points=None, outlier_fraction=0.0, normal_source="mesh")
-    return sscape.simulate_scan(jr.PRNGKey(0), *subject, cfg)
+    cfg = registration.ScannerConfig(n_points=None, outlier_fraction=0.0, normal_source="mesh")
+    return registration.simulate_scan(jr.PRNGKey(0), *subject, cfg)
 
 
 @pytest.fixture(scope="module")
 def default_scan(subject):
-    return sscape.simulate_scan(jr.PRNGKey(1), *subject)
+    return registration.simulate_scan(jr.PRNGKey(1), *subject)
 
 
 def _face_geometry(v, f):
@@ -111,10 +111,10 @@ def test_normals_estimated_from_points(default_scan, subject):
 
 def test_landmark_noise_and_missing(subject):
     v, f, lm, names = subject
-    cfg = sscape.ScannerConfig(n_points=2000, landmark_sigma=0.0075, landmark_missing=0.3)
+    cfg = registration.ScannerConfig(n_points=2000, landmark_sigma=0.0075, landmark_missing=0.3)
     errs, present = [], []
     for i in range(3):
-        scan, _ = sscape.simulate_scan(jr.PRNGKey(10 + i), v, f, lm, names, cfg)
+        scan, _ = registration.simulate_scan(jr.PRNGKey(10 + i), v, f, lm, names, cfg)
         m = np.asarray(scan.landmark_mask)
         errs.append((np.asarray(scan.landmarks) - lm)[m])
         present.append(m)
@@ -127,25 +127,25 @@ def test_landmark_noise_and_missing(subject):
 
 def test_density_and_extra_holes(subject, raw):
     v, f, lm, names = subject
-    coarse = sscape.ScannerConfig(n_points=None, spacing=0.008, outlier_fraction=0.0)
-    s8, _ = sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names, coarse)
+    coarse = registration.ScannerConfig(n_points=None, spacing=0.008, outlier_fraction=0.0)
+    s8, _ = registration.simulate_scan(jr.PRNGKey(0), v, f, lm, names, coarse)
     ratio = raw[0].n_points / s8.n_points
     assert 3.3 < ratio < 4.7  # hits scale with 1 / spacing^2
-    holey, _ = sscape.simulate_scan(
+    holey, _ = registration.simulate_scan(
         jr.PRNGKey(0), v, f, lm, names, coarse.replace(hole_fraction=0.3)
     )
     assert abs(holey.n_points / s8.n_points - 0.7) < 0.005
-    small, _ = sscape.simulate_scan(
-        jr.PRNGKey(0), v, f, lm, names, sscape.ScannerConfig(n_points=5000)
+    small, _ = registration.simulate_scan(
+        jr.PRNGKey(0), v, f, lm, names, registration.ScannerConfig(n_points=5000)
     )
     assert small.n_points == 5000
 
 
 def test_reproducible(subject):
-    cfg = sscape.ScannerConfig(n_points=3000)
-    a, _ = sscape.simulate_scan(jr.PRNGKey(3), *subject, cfg)
-    b, _ = sscape.simulate_scan(jr.PRNGKey(3), *subject, cfg)
-    c, _ = sscape.simulate_scan(jr.PRNGKey(4), *subject, cfg)
+    cfg = registration.ScannerConfig(n_points=3000)
+    a, _ = registration.simulate_scan(jr.PRNGKey(3), *subject, cfg)
+    b, _ = registration.simulate_scan(jr.PRNGKey(3), *subject, cfg)
+    c, _ = registration.simulate_scan(jr.PRNGKey(4), *subject, cfg)
     np.testing.assert_array_equal(np.asarray(a.points), np.asarray(b.points))
     assert not np.array_equal(np.asarray(a.points), np.asarray(c.points))
 
@@ -153,8 +153,8 @@ def test_reproducible(subject):
 def test_simulate_scans_batches_and_pads(subject, body):
     v, f, _, names = subject
     pop = np.stack([v, v * 1.05])  # a taller subject has more hits
-    cfg = sscape.ScannerConfig(n_points=None, spacing=0.012)
-    scans, truths = sscape.simulate_scans(
+    cfg = registration.ScannerConfig(n_points=None, spacing=0.012)
+    scans, truths = registration.simulate_scans(
         jr.PRNGKey(0), pop, f, body.landmark_index, names, cfg, progress=False
     )
     P = scans.points.shape[1]
@@ -167,22 +167,22 @@ def test_simulate_scans_batches_and_pads(subject, body):
     # padding repeats real points of the same scan
     real = {tuple(p) for p in np.asarray(scans.points[i])[~pad]}
     assert all(tuple(p) in real for p in np.asarray(scans.points[i])[pad])
-    sscape.check_scan(scans)
+    registration.check_scan(scans)
     with pytest.raises(ValueError, match="`n_points`"):
-        sscape.pad_scans([sscape.simulate_scan(jr.PRNGKey(0), *subject, cfg)[0]], 5)
+        registration.pad_scans([registration.simulate_scan(jr.PRNGKey(0), *subject, cfg)[0]], 5)
     with pytest.raises(ValueError, match="`scans`"):
-        sscape.pad_scans([])
+        registration.pad_scans([])
 
 
 def test_config_and_input_errors(subject):
     v, f, lm, names = subject
     with pytest.raises(ValueError, match="`noise_sigma`"):
-        sscape.ScannerConfig(noise_sigma=-0.001)
+        registration.ScannerConfig(noise_sigma=-0.001)
     with pytest.raises(ValueError, match="`normal_source`"):
-        sscape.ScannerConfig(normal_source="magic")
+        registration.ScannerConfig(normal_source="magic")
     with pytest.raises(ValueError, match="`hole_fraction`"):
-        sscape.ScannerConfig.hard(hole_fraction=2.0)
-    hard = sscape.ScannerConfig.hard()
+        registration.ScannerConfig.hard(hole_fraction=2.0)
+    hard = registration.ScannerConfig.hard()
     assert (hard.hole_fraction, hard.noise_sigma, hard.outlier_fraction, hard.landmark_sigma) == (
         0.3,
         0.002,
@@ -190,13 +190,13 @@ def test_config_and_input_errors(subject):
         0.01,
     )
     with pytest.raises(ValueError, match="`vertices`.*metres"):
-        sscape.simulate_scan(jr.PRNGKey(0), v * 1000, f, lm * 1000, names)
+        registration.simulate_scan(jr.PRNGKey(0), v * 1000, f, lm * 1000, names)
     with pytest.raises(ValueError, match="`landmark_names`"):
-        sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names[:3])
+        registration.simulate_scan(jr.PRNGKey(0), v, f, lm, names[:3])
     with pytest.raises(ValueError, match="`vertices`"):
-        sscape.simulate_scan(jr.PRNGKey(0), v[:, :2], f, lm, names)
+        registration.simulate_scan(jr.PRNGKey(0), v[:, :2], f, lm, names)
     with pytest.raises(ValueError, match="`config`"):
-        sscape.simulate_scan(jr.PRNGKey(0), v, f, lm, names, {"noise_sigma": 0.001})
+        registration.simulate_scan(jr.PRNGKey(0), v, f, lm, names, {"noise_sigma": 0.001})
 
 
 def _scan(points, normals=None, mask=None, names=("a", "b")):
@@ -207,7 +207,7 @@ def _scan(points, normals=None, mask=None, names=("a", "b")):
         else jnp.tile(jnp.array([0.0, 0.0, 1.0]), (p.shape[0], 1))
     )
     m = jnp.ones(p.shape[0], bool) if mask is None else jnp.asarray(mask)
-    return sscape.Scan(
+    return registration.Scan(
         p, n, m, jnp.zeros((len(names), 3)), jnp.ones(len(names), bool), tuple(names)
     )
 
@@ -215,26 +215,26 @@ def _scan(points, normals=None, mask=None, names=("a", "b")):
 def test_check_scan_errors():
     rng = np.random.default_rng(0)
     body_pts = rng.uniform([-0.3, -0.2, -0.85], [0.3, 0.2, 0.85], (500, 3))
-    sscape.check_scan(_scan(body_pts))
+    registration.check_scan(_scan(body_pts))
     with pytest.raises(ValueError, match="empty"):
-        sscape.check_scan(_scan(body_pts, mask=np.zeros(500, bool)))
+        registration.check_scan(_scan(body_pts, mask=np.zeros(500, bool)))
     with pytest.raises(ValueError, match="too few points"):
-        sscape.check_scan(_scan(body_pts[:50]))
+        registration.check_scan(_scan(body_pts[:50]))
     bad = body_pts.copy()
     bad[7, 1] = np.nan
     with pytest.raises(ValueError, match=r"`scan.points` contains NaN"):
-        sscape.check_scan(_scan(bad))
+        registration.check_scan(_scan(bad))
     with pytest.raises(ValueError, match="millimetres"):
-        sscape.check_scan(_scan(body_pts * 1000))
+        registration.check_scan(_scan(body_pts * 1000))
     with pytest.raises(ValueError, match="`scan.normals` must be unit"):
-        sscape.check_scan(_scan(body_pts, normals=np.ones((500, 3))))
-    with pytest.raises(ValueError, match="must be a bodyprior.sscape.Scan"):
-        sscape.check_scan(body_pts)
+        registration.check_scan(_scan(body_pts, normals=np.ones((500, 3))))
+    with pytest.raises(ValueError, match="must be a bodyprior.registration.Scan"):
+        registration.check_scan(body_pts)
     with pytest.raises(ValueError, match="`normals` must have the shape"):
         _scan(body_pts, normals=np.ones((499, 3)))
     with pytest.raises(ValueError, match="`landmark_names`"):
         z = jnp.zeros((500, 3))
-        sscape.Scan(z, z, jnp.ones(500, bool), jnp.zeros((2, 3)), jnp.ones(2, bool), ("a",))
+        registration.Scan(z, z, jnp.ones(500, bool), jnp.zeros((2, 3)), jnp.ones(2, bool), ("a",))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -258,7 +258,7 @@ END =
 def test_read_lnd_caesar_format(tmp_path):
     p = tmp_path / "s.lnd"
     p.write_text(_LND)
-    names, pos = sscape.read_lnd(p)
+    names, pos = registration.read_lnd(p)
     assert names == (
         "Sellion",
         "Rt. Infraorbitale",
@@ -270,17 +270,17 @@ def test_read_lnd_caesar_format(tmp_path):
     np.testing.assert_allclose(pos[3], [0.04108, 0.16724, -0.554])
     with pytest.raises(ValueError, match="no landmark line"):
         (tmp_path / "e.lnd").write_text("AUX =\nEND =\n")
-        sscape.read_lnd(tmp_path / "e.lnd")
+        registration.read_lnd(tmp_path / "e.lnd")
     with pytest.raises(ValueError, match="does not exist"):
-        sscape.read_lnd(tmp_path / "nope.lnd")
+        registration.read_lnd(tmp_path / "nope.lnd")
 
 
 @pytest.mark.parametrize("ext", [".ply", ".obj"])
 def test_scan_round_trip(tmp_path, default_scan, ext):
     scan, _ = default_scan
     p, lp = tmp_path / f"s{ext}", tmp_path / "s.lnd"
-    sscape.write_scan(p, scan, landmarks_path=lp)
-    back, info = sscape.read_scan(p, landmarks_path=lp, return_info=True)
+    registration.write_scan(p, scan, landmarks_path=lp)
+    back, info = registration.read_scan(p, landmarks_path=lp, return_info=True)
     tol = 1e-12 if ext == ".ply" else 1e-8
     np.testing.assert_allclose(np.asarray(back.points), np.asarray(scan.points), atol=tol)
     np.testing.assert_allclose(np.asarray(back.normals), np.asarray(scan.normals), atol=1e-8)
@@ -297,8 +297,8 @@ def test_read_scan_units_and_normals(tmp_path, subject, default_scan):
     v, f, lm, names = subject
     # A mesh scan and landmarks in millimetres: detected, converted, normals from the faces.
     bp.write_ply(tmp_path / "mm.ply", v * 1000.0, f)
-    sscape.write_lnd(tmp_path / "mm.lnd", names, lm)  # .lnd is always millimetres
-    scan, info = sscape.read_scan(
+    registration.write_lnd(tmp_path / "mm.lnd", names, lm)  # .lnd is always millimetres
+    scan, info = registration.read_scan(
         tmp_path / "mm.ply", landmarks_path=tmp_path / "mm.lnd", return_info=True
     )
     assert info["units"] == "mm" and info["scale"] == 0.001 and info["normals"] == "mesh"
@@ -308,37 +308,37 @@ def test_read_scan_units_and_normals(tmp_path, subject, default_scan):
     # A point cloud without normals (here a simulated scan, in mm) gets estimated outward normals.
     scan, truth = default_scan
     bp.write_ply(tmp_path / "pc.ply", np.asarray(scan.points) * 1000.0)
-    pc, info = sscape.read_scan(tmp_path / "pc.ply", units="mm", return_info=True)
+    pc, info = registration.read_scan(tmp_path / "pc.ply", units="mm", return_info=True)
     assert info["normals"] == "estimated"
     np.testing.assert_allclose(np.asarray(pc.points), np.asarray(scan.points), atol=1e-6)
     _, fn, _ = _face_geometry(v, f)
     inl = ~np.asarray(truth.is_outlier)
     cos = np.sum(np.asarray(pc.normals)[inl] * fn[np.asarray(truth.face)[inl]], axis=1)
     assert (cos > 0).mean() > 0.97
-    sub = sscape.read_scan(tmp_path / "pc.ply", units="mm", n_points=4000, seed=1)
+    sub = registration.read_scan(tmp_path / "pc.ply", units="mm", n_points=4000, seed=1)
     assert sub.n_points == 4000
     # Sizes that are neither metres nor millimetres are refused, naming `units`.
     bp.write_ply(tmp_path / "cm.ply", v * 100.0)
     with pytest.raises(ValueError, match="`units`"):
-        sscape.read_scan(tmp_path / "cm.ply")
-    assert sscape.read_scan(tmp_path / "cm.ply", units="cm").n_points == v.shape[0]
+        registration.read_scan(tmp_path / "cm.ply")
+    assert registration.read_scan(tmp_path / "cm.ply", units="cm").n_points == v.shape[0]
     with pytest.raises(ValueError, match="`units` must be"):
-        sscape.read_scan(tmp_path / "cm.ply", units="inch")
+        registration.read_scan(tmp_path / "cm.ply", units="inch")
 
 
 def test_read_scan_errors(tmp_path):
     (tmp_path / "empty.ply").write_text("")
     with pytest.raises(ValueError, match="empty"):
-        sscape.read_scan(tmp_path / "empty.ply")
+        registration.read_scan(tmp_path / "empty.ply")
     (tmp_path / "nan.obj").write_text("v 0 0 0\nv nan 1 1\nv 0 1.7 0\n")
     with pytest.raises(ValueError, match="NaN"):
-        sscape.read_scan(tmp_path / "nan.obj")
+        registration.read_scan(tmp_path / "nan.obj")
     rng = np.random.default_rng(0)
     bp.write_ply(tmp_path / "few.ply", rng.uniform(0, 1.7, (40, 3)))
     with pytest.raises(ValueError, match="too few points"):
-        sscape.read_scan(tmp_path / "few.ply", units="m")
+        registration.read_scan(tmp_path / "few.ply", units="m")
     with pytest.raises(ValueError, match=r"\.ply or \.obj"):
-        sscape.write_scan(tmp_path / "x.xyz", _scan(rng.uniform(-0.8, 0.8, (200, 3))))
+        registration.write_scan(tmp_path / "x.xyz", _scan(rng.uniform(-0.8, 0.8, (200, 3))))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -348,7 +348,7 @@ def test_read_scan_errors(tmp_path):
 
 @pytest.fixture(scope="module")
 def tmpl():
-    return sscape.registration_template()
+    return registration.registration_template()
 
 
 @pytest.fixture(scope="module")
@@ -364,8 +364,8 @@ def test_registration_survives_hard_scans(subject, tmpl, size_space):
     """30 % holes, 2 mm noise, 5 % outliers, 10 mm landmark noise, 15 % landmarks missing: the
     S-SCAPE fit and NRD finish, and stay close to the ground truth (the scanned body is the
     template). NRD without the head rule (made for CAESAR's dummy heads)."""
-    cfg = sscape.ScannerConfig.hard()
-    scan, truth = sscape.simulate_scan(jr.PRNGKey(5), *subject, cfg)
+    cfg = registration.ScannerConfig.hard()
+    scan, truth = registration.simulate_scan(jr.PRNGKey(5), *subject, cfg)
     assert 0.7 < float(np.asarray(scan.landmark_mask).mean()) < 0.95
     fit = sscape.fit_sscape(
         size_space, scan, tmpl, config=sscape.FitConfig(max_passes=3), throw=False
@@ -373,19 +373,19 @@ def test_registration_survives_hard_scans(subject, tmpl, size_space):
     R = sscape.FitResult
     assert bool((fit.result == R.successful) | (fit.result == R.max_passes_reached))
     gt = jnp.asarray(tmpl.vertices, jnp.float64)
-    e_fit = np.asarray(sscape.gt_error(fit.vertices, gt))
+    e_fit = np.asarray(registration.gt_error(fit.vertices, gt))
     assert np.isfinite(e_fit).all() and e_fit.mean() < 15.0, e_fit.mean()
-    res = sscape.nrd(
-        fit.vertices, tmpl, scan, config=sscape.NRDConfig(head_rule=False), throw=False
+    res = registration.nrd(
+        fit.vertices, tmpl, scan, config=registration.NRDConfig(head_rule=False), throw=False
     )
-    e_nrd = np.asarray(sscape.gt_error(res.vertices, gt))
+    e_nrd = np.asarray(registration.gt_error(res.vertices, gt))
     # bounded, not garbage (measured: 12.3 mm mean; a failed registration is far beyond 20 mm)
     assert np.isfinite(e_nrd).all() and e_nrd.mean() < 15.0, e_nrd.mean()
     assert (e_nrd < 10.0).mean() > 0.5, (e_nrd < 10.0).mean()
 
 
 def test_registration_rejects_bad_scans(subject, tmpl, size_space):
-    scan, _ = sscape.simulate_scan(jr.PRNGKey(6), *subject, sscape.ScannerConfig(n_points=500))
+    scan, _ = registration.simulate_scan(jr.PRNGKey(6), *subject, registration.ScannerConfig(n_points=500))
     mm = eqx.tree_at(
         lambda s: (s.points, s.landmarks), scan, (scan.points * 1000, scan.landmarks * 1000)
     )
@@ -396,4 +396,4 @@ def test_registration_rejects_bad_scans(subject, tmpl, size_space):
         with pytest.raises(ValueError, match=msg):
             sscape.fit_sscape(size_space, bad, tmpl)
         with pytest.raises(ValueError, match=msg):
-            sscape.nrd(init, tmpl, bad)
+            registration.nrd(init, tmpl, bad)

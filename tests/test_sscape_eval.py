@@ -1,5 +1,5 @@
 """Registration quality measures: the paper's fitting error, ground-truth error, cumulative curves
-and figures (bodyprior/sscape/_evaluate.py)."""
+and figures (bodyprior/registration/_evaluate.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from _toybody import tube_mesh
 
 import bodyprior as bp
-from bodyprior.sscape import (
+from bodyprior.registration import (
     THRESHOLDS_20MM,
     cumulative_curve,
     error_colormap_png,

@@ -14,16 +14,14 @@ import numpy as np
 import pytest
 
 import bodyprior as bp
+from bodyprior.registration import Scan, ScannerConfig, simulate_scan
 from bodyprior.sscape import (
     FitConfig,
     FitResult,
-    Scan,
-    ScannerConfig,
     compatible_correspondences,
     fit_similarity,
     fit_sscape,
     fit_sscape_batch,
-    simulate_scan,
 )
 
 N_POINTS = 8000
@@ -85,7 +83,7 @@ def _sampled_scan(key, verts, faces, tmpl, missing=(3, 10, 40)):
 
 @pytest.fixture(scope="module")
 def setup():
-    tmpl = bp.sscape.registration_template()
+    tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(jr.PRNGKey(0), 24, body=body, progress=False)
     model = bp.sscape.learn(

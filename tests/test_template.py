@@ -10,7 +10,7 @@ import bodyprior as bp
 
 @pytest.fixture(scope="module")
 def tmpl():
-    return bp.sscape.registration_template()
+    return bp.registration.registration_template()
 
 
 def test_template_is_vertex_subset(tmpl):
@@ -52,6 +52,6 @@ def test_regressor_recovers_exact_joints(tmpl):
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="`rig`"):
-        bp.sscape.registration_template("smpl")
+        bp.registration.registration_template("smpl")
     with pytest.raises(ValueError, match="`n_fit`"):
-        bp.sscape.registration_template(n_fit=3)
+        bp.registration.registration_template(n_fit=3)

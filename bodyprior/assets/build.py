@@ -29,6 +29,7 @@ import time
 import numpy as np
 import scipy.linalg
 
+from .._stats import joint_regressor
 from . import _checksum as array_checksum
 from . import _source as S
 
@@ -155,26 +156,6 @@ def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int | No
     dropped = 1.0 - w.sum(1) / W.sum(1)
     w = w / w.sum(1, keepdims=True)
     return order.astype(np.uint8), w.astype(np.float32), int(counts.max()), float(dropped.max())
-
-
-def joint_regressor(
-    template: np.ndarray, point: np.ndarray, verts: np.ndarray, points: np.ndarray, k: int = 256, ridge=1e-6
-):
-    """Weights w over the k template vertices nearest to a joint point such that sum_i w_i v_i reproduces the
-    joint point over a sample of bodies (least squares with sum w = 1, so the map commutes with translations
-    and rotations).
-
-    verts: (S, V, 3) sampled rest meshes; points: (S, 3) the joint point on each.
-    Returns (indices (k,) int32, weights (k,)).
-    """
-    nn = np.argsort(np.linalg.norm(template - point, axis=1))[:k]
-    A = np.transpose(verts[:, nn], (0, 2, 1)).reshape(-1, k)
-    b = points.reshape(-1)
-    w0 = np.full(k, 1.0 / k)
-    N = scipy.linalg.null_space(np.ones((1, k)))
-    Az = A @ N
-    z = np.linalg.solve(Az.T @ Az + ridge * np.eye(k - 1), Az.T @ (b - A @ w0))
-    return nn.astype(np.int32), w0 + N @ z
 
 
 def phenotype_samples(masks: np.ndarray, n: int, seed: int) -> np.ndarray:

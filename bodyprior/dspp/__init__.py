@@ -1,53 +1,84 @@
 """DSPP: deep shape and pose priors (Hu, Shum, Mucherino 2019) — auto-encoders with GANs in their latent
 spaces, on the default body's topology and `cmu_mb` rig."""
 
+from ._checkpoint import (
+    load_prior as load_prior,
+)
+from ._checkpoint import (
+    save_prior as save_prior,
+)
 from ._fitting import (
     PriorResidual as PriorResidual,
+)
+from ._fitting import (
     ShapeFit as ShapeFit,
+)
+from ._fitting import (
     fit_latent_to_landmarks as fit_latent_to_landmarks,
+)
+from ._fitting import (
     fit_shape_space_to_landmarks as fit_shape_space_to_landmarks,
+)
+from ._fitting import (
     latent_statistics as latent_statistics,
+)
+from ._fitting import (
     pose_prior_residual as pose_prior_residual,
+)
+from ._fitting import (
     shape_prior_residual as shape_prior_residual,
 )
 from ._limits import (
     joint_limit_violation as joint_limit_violation,
+)
+from ._limits import (
     joint_limits as joint_limits,
-)
-from ._mocap import (
-    EULER_ORDER as EULER_ORDER,
-    POSE_JOINTS as POSE_JOINTS,
-    PoseSet as PoseSet,
-    find_mocap_dir as find_mocap_dir,
-    load_mocap as load_mocap,
-    pose_euler as pose_euler,
-    render_poses as render_poses,
-    rig_pose as rig_pose,
-    split_by_clip as split_by_clip,
-)
-from ._checkpoint import (
-    load_prior as load_prior,
-    save_prior as save_prior,
 )
 from ._nets import (
     DSPPConfig as DSPPConfig,
+)
+from ._nets import (
     GeometryGAN as GeometryGAN,
+)
+from ._nets import (
     PosePrior as PosePrior,
+)
+from ._nets import (
     ShapePrior as ShapePrior,
+)
+from ._nets import (
     init_aegan as init_aegan,
+)
+from ._nets import (
     init_geometry_gan as init_geometry_gan,
+)
+from ._nets import (
     spectral_norms as spectral_norms,
 )
 from ._sample import (
     PCA_MODES as PCA_MODES,
+)
+from ._sample import (
     PCAPrior as PCAPrior,
+)
+from ._sample import (
     fit_pca_prior as fit_pca_prior,
+)
+from ._sample import (
     sample as sample,
 )
 from ._train import (
     TrainLog as TrainLog,
+)
+from ._train import (
     plot_train_log as plot_train_log,
+)
+from ._train import (
     train_geometry_gan as train_geometry_gan,
+)
+from ._train import (
     train_pose_prior as train_pose_prior,
+)
+from ._train import (
     train_shape_prior as train_shape_prior,
 )

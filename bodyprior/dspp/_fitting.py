@@ -40,7 +40,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._validate import check_array, is_tracer
-from ..sscape._model import SScapeModel, shape_vertices
+from ..sscape import SScapeModel, shape_vertices
 from ._nets import PosePrior, ShapePrior
 
 __all__ = [
@@ -182,7 +182,7 @@ def pose_prior_residual(
     reconstruction: bool | None = None,
 ) -> PriorResidual:
     """The pose prior as a residual: as [`bodyprior.dspp.shape_prior_residual`][] for Euler-angle
-    poses `(20, 3)` (radians, `bodyprior.dspp.EULER_ORDER`); `reconstruction_weight` multiplies
+    poses `(20, 3)` (radians, `bodyprior.EULER_ORDER`); `reconstruction_weight` multiplies
     the mean squared angle difference per joint (rad²)."""
     return _prior_residual(prior, weight, reconstruction_weight, reconstruction, PosePrior)
 

@@ -1,6 +1,6 @@
 """Joint limits learned from mocap poses, and the fraction of sampled poses that break them.
 
-Definition (per joint, per Euler angle, in the pose convention of [`bodyprior.dspp.PoseSet`][]):
+Definition (per joint, per Euler angle, in the pose convention of [`bodyprior.PoseSet`][]):
 
 1. Every pose is first brought to **canonical Euler angles**: angles -> rotation matrix -> angles
    with [`bodyprior.matrix_to_euler`][] (middle angle in `[-π/2, π/2]` for Tait-Bryan orders, outer
@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._mocap import EULER_ORDER
 from .._rotations import EULER_ORDERS, euler_to_matrix, matrix_to_euler
 from .._validate import check_array
-from ._mocap import EULER_ORDER
 
 __all__ = ["joint_limit_violation", "joint_limits"]
 
@@ -73,7 +73,7 @@ def joint_limits(
       clips, `J = 20`).
     - `quantile`: tail mass cut on each side of each angle, in `[0, 0.5)`; 0 gives the full
       observed range.
-    - `order`: Euler order of `euler`; default `bodyprior.dspp.EULER_ORDER`.
+    - `order`: Euler order of `euler`; default `bodyprior.EULER_ORDER`.
 
     **Returns:** `(J, 3, 2)` array of `(lower, upper)` limits in radians, `upper - lower < 2π`; the
     bounds may lie outside `(-π, π]` when an interval straddles ±π.
@@ -112,7 +112,7 @@ def joint_limit_violation(
 
     - `samples`: poses, shape `(S, J, 3)`, radians, Euler order `order`.
     - `limits`: `(J, 3, 2)` from [`bodyprior.dspp.joint_limits`][].
-    - `order`: Euler order of `samples`; default `bodyprior.dspp.EULER_ORDER`.
+    - `order`: Euler order of `samples`; default `bodyprior.EULER_ORDER`.
 
     **Returns:** the violating fraction in `[0, 1]` (Python float).
 

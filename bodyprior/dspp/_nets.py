@@ -346,7 +346,7 @@ class ShapePrior(_AEGANPrior):
 
 
 class PosePrior(_AEGANPrior):
-    """A trained DSPP pose prior over Euler angles `(20, 3)` (radians, `bodyprior.dspp.EULER_ORDER`,
+    """A trained DSPP pose prior over Euler angles `(20, 3)` (radians, `bodyprior.EULER_ORDER`,
     joints `POSE_JOINTS`); same methods as [`bodyprior.dspp.ShapePrior`][]. Build with
     [`bodyprior.dspp.train_pose_prior`][]."""
 

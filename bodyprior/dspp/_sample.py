@@ -10,7 +10,7 @@
   `s_k = +-1`: the corners of the 3-sigma box, far from the centre where the paper says linear
   spaces produce unrealistic humans) or `mode="uniform3sigma"` (`c_k ~ U(-3 sigma_k, 3 sigma_k)`).
 
-Pictures of sampled poses on the default body: `bodyprior.dspp.render_poses` (Euler -> `rig_pose` ->
+Pictures of sampled poses on the default body: `bodyprior.render_poses` (Euler -> `rig_pose` ->
 posed default body).
 """
 
@@ -25,8 +25,8 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .._stats import pca_host as _pca_host
 from .._validate import check_array
-from ..sscape._learn import _pca_host
 from ._nets import GeometryGAN, PosePrior, ShapePrior
 
 PCA_MODES = ("gaussian", "pm3sigma", "uniform3sigma")

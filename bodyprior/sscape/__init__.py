@@ -1,5 +1,68 @@
-"""S-SCAPE statistical body model (Pishchulin et al. 2017): model, evaluation, learning, I/O."""
+"""S-SCAPE statistical body model (Pishchulin et al. 2017): the model, evaluation, learning and the
+space measures, the S-SCAPE and depth fits, posture normalization, bootstrapping, I/O and the MPII
+humanshape format. Scans, the scanner, the registration template, NRD and the error measures are
+model-independent and live in `bodyprior.registration`."""
 
+from ._bootstrap import (
+    BootstrapPass as BootstrapPass,
+)
+from ._bootstrap import (
+    BootstrapResult as BootstrapResult,
+)
+from ._bootstrap import (
+    GateConfig as GateConfig,
+)
+from ._bootstrap import (
+    GateResult as GateResult,
+)
+from ._bootstrap import (
+    Registration as Registration,
+)
+from ._bootstrap import (
+    body_parts as body_parts,
+)
+from ._bootstrap import (
+    bootstrap as bootstrap,
+)
+from ._bootstrap import (
+    calibrate_gate as calibrate_gate,
+)
+from ._bootstrap import (
+    register_sscape_nrd as register_sscape_nrd,
+)
+from ._bootstrap import (
+    registration_gate as registration_gate,
+)
+from ._depth import (
+    DepthFit as DepthFit,
+)
+from ._depth import (
+    DepthFitConfig as DepthFitConfig,
+)
+from ._depth import (
+    fit_depth as fit_depth,
+)
+from ._fit import (
+    FitConfig as FitConfig,
+)
+from ._fit import (
+    FitResult as FitResult,
+)
+from ._fit import (
+    SScapeFit as SScapeFit,
+)
+from ._fit import (
+    compatible_correspondences as compatible_correspondences,
+)
+from ._fit import (
+    fit_similarity as fit_similarity,
+)
+from ._fit import (
+    fit_sscape as fit_sscape,
+)
+from ._fit import (
+    fit_sscape_batch as fit_sscape_batch,
+)
 from ._learn import (
     Compactness as Compactness,
 )
@@ -23,6 +86,9 @@ from ._learn import (
 )
 from ._learn import (
     procrustes_align as procrustes_align,
+)
+from ._learn import (
+    reconstruction_error as reconstruction_error,
 )
 from ._learn import (
     specificity as specificity,
@@ -60,30 +126,35 @@ from ._mpii import (
 from ._mpii import (
     write_mpii_humanshape as write_mpii_humanshape,
 )
+from ._posture import (
+    LaplacianSolver as LaplacianSolver,
+)
+from ._posture import (
+    PostureRig as PostureRig,
+)
+from ._posture import (
+    learn_normalized as learn_normalized,
+)
+from ._posture import (
+    normalize_posture_nh as normalize_posture_nh,
+)
+from ._posture import (
+    normalize_posture_nh_batch as normalize_posture_nh_batch,
+)
+from ._posture import (
+    normalize_posture_wsx as normalize_posture_wsx,
+)
+from ._posture import (
+    normalize_posture_wsx_batch as normalize_posture_wsx_batch,
+)
+from ._posture import (
+    posture_rig as posture_rig,
+)
+from ._posture import (
+    unpose_lbs as unpose_lbs,
+)
 from ._serialize import (
     FORMAT_NAME as FORMAT_NAME,
-)
-from ._template import (
-    RegistrationTemplate as RegistrationTemplate,
-)
-from ._template import (
-    registration_template as registration_template,
-)
-from ._fit import (
-    FitConfig as FitConfig,
-    FitResult as FitResult,
-    SScapeFit as SScapeFit,
-    compatible_correspondences as compatible_correspondences,
-    fit_similarity as fit_similarity,
-    fit_sscape as fit_sscape,
-    fit_sscape_batch as fit_sscape_batch,
-)
-from ._shard import batch_map as batch_map
-from ._nrd import (
-    NRDConfig as NRDConfig,
-    NRDResult as NRDResult,
-    nrd as nrd,
-    nrd_batch as nrd_batch,
 )
 from ._serialize import (
     FORMAT_VERSION as FORMAT_VERSION,
@@ -93,73 +164,4 @@ from ._serialize import (
 )
 from ._serialize import (
     save_model as save_model,
-)
-from ._evaluate import (
-    THRESHOLDS_20MM as THRESHOLDS_20MM,
-    THRESHOLDS_50MM as THRESHOLDS_50MM,
-    FittingError as FittingError,
-    cumulative_curve as cumulative_curve,
-    error_colormap_png as error_colormap_png,
-    fitting_error as fitting_error,
-    fitting_error_batch as fitting_error_batch,
-    gt_error as gt_error,
-    mean_vertex_error as mean_vertex_error,
-    plot_cumulative_curves as plot_cumulative_curves,
-    reconstruction_error as reconstruction_error,
-)
-from ._posture import (
-    LaplacianSolver as LaplacianSolver,
-    PostureRig as PostureRig,
-    learn_normalized as learn_normalized,
-    normalize_posture_nh as normalize_posture_nh,
-    normalize_posture_nh_batch as normalize_posture_nh_batch,
-    normalize_posture_wsx as normalize_posture_wsx,
-    normalize_posture_wsx_batch as normalize_posture_wsx_batch,
-    posture_rig as posture_rig,
-    unpose_lbs as unpose_lbs,
-)
-from ._bootstrap import (
-    BootstrapPass as BootstrapPass,
-    BootstrapResult as BootstrapResult,
-    GateConfig as GateConfig,
-    GateResult as GateResult,
-    Registration as Registration,
-    body_parts as body_parts,
-    calibrate_gate as calibrate_gate,
-    bootstrap as bootstrap,
-    register_sscape_nrd as register_sscape_nrd,
-    registration_gate as registration_gate,
-)
-from ._scan import (
-    Scan as Scan,
-    ScannerConfig as ScannerConfig,
-    ScanTruth as ScanTruth,
-    check_scan as check_scan,
-    estimate_normals as estimate_normals,
-    pad_scans as pad_scans,
-    simulate_scan as simulate_scan,
-    simulate_scans as simulate_scans,
-)
-from ._scanio import (
-    detect_units as detect_units,
-    read_lnd as read_lnd,
-    read_scan as read_scan,
-    write_lnd as write_lnd,
-    write_scan as write_scan,
-)
-from ._depth import (
-    DEPTH_LANDMARKS as DEPTH_LANDMARKS,
-    DepthCamera as DepthCamera,
-    DepthFit as DepthFit,
-    DepthFitConfig as DepthFitConfig,
-    DepthTruth as DepthTruth,
-    capture_poses as capture_poses,
-    depth_landmarks as depth_landmarks,
-    depth_normals as depth_normals,
-    depth_scan_truth as depth_scan_truth,
-    depth_to_scan as depth_to_scan,
-    fit_depth as fit_depth,
-    kinect_pair as kinect_pair,
-    render_depth as render_depth,
-    simulate_depth_scan as simulate_depth_scan,
 )

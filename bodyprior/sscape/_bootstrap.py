@@ -7,7 +7,7 @@ paper (1771, 3253, 3641, 4237, 4301 of 4308 CAESAR scans passed after each).
 **The gate** replaces the paper's visual inspection, which it keeps because "low average fitting
 errors do not always correspond to good results, since the fitting of localized areas may be
 inaccurate". [`bodyprior.sscape.registration_gate`][] therefore checks the paper's fitting error
-([`bodyprior.sscape.fitting_error`][], nearest scan point within 50 mm and 60 deg) globally *and*
+([`bodyprior.registration.fitting_error`][], nearest scan point within 50 mm and 60 deg) globally *and*
 per body part, ignoring the hands (the paper does not register them):
 
 1. the fraction of (non-hand) template vertices whose fitting error is at most `threshold_mm`
@@ -39,10 +39,10 @@ import numpy as np
 from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
-from ._evaluate import fitting_error_batch
+from ..registration._evaluate import fitting_error_batch
+from ..registration._template import RegistrationTemplate
 from ._learn import learn
 from ._model import SScapeModel
-from ._template import RegistrationTemplate
 
 __all__ = [
     "BootstrapPass",
@@ -147,10 +147,10 @@ def registration_gate(
     **Arguments:**
 
     - `vertices`: registrations `(N, V, 3)`, metres, scan frame.
-    - `scans`: the batched [`bodyprior.sscape.Scan`][] they were fitted to.
-    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][] (faces, hands, skinning for parts).
+    - `scans`: the batched [`bodyprior.registration.Scan`][] they were fitted to.
+    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, hands, skinning for parts).
     - `config`: a [`bodyprior.sscape.GateConfig`][].
-    - `errors`: optional precomputed [`bodyprior.sscape.FittingError`][] (batched) with the same
+    - `errors`: optional precomputed [`bodyprior.registration.FittingError`][] (batched) with the same
       `max_dist`/`max_angle_deg`, to avoid recomputing it.
 
     **Returns:** a [`bodyprior.sscape.GateResult`][].
@@ -251,8 +251,8 @@ def register_sscape_nrd(
     """
     import jax
 
+    from ..registration._nrd import NRDConfig, nrd
     from ._fit import FitConfig, fit_sscape_batch
-    from ._nrd import NRDConfig, nrd
 
     fit_config = FitConfig() if fit_config is None else fit_config
     nrd_config = NRDConfig() if nrd_config is None else nrd_config
@@ -316,8 +316,8 @@ def bootstrap(
 
     **Arguments:**
 
-    - `scans`: batched [`bodyprior.sscape.Scan`][].
-    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][].
+    - `scans`: batched [`bodyprior.registration.Scan`][].
+    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `init_model`: the initial space (learned on a separate, smaller data set).
     - `n_passes`: passes (paper: 5).
     - `n_components`: components of the learned spaces.

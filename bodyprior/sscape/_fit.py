@@ -67,10 +67,10 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
 from .._validate import check_array, is_tracer
-from ._grid import nearest_within
+from ..registration._grid import nearest_within
+from ..registration._scan import Scan, check_scan
+from ..registration._template import RegistrationTemplate
 from ._model import SScapeModel, evaluate, shape_vertices
-from ._scan import Scan, check_scan
-from ._template import RegistrationTemplate
 
 __all__ = [
     "FitConfig",
@@ -318,7 +318,7 @@ def compatible_correspondences(
 
     - `verts`: model vertices, shape `(V, 3)`, metres, in the scan's frame.
     - `normals`: their unit normals, shape `(V, 3)` (e.g. `bodyprior.vertex_normals`).
-    - `scan`: a [`bodyprior.sscape.Scan`][] (one scan).
+    - `scan`: a [`bodyprior.registration.Scan`][] (one scan).
     - `max_dist`: distance gate, metres (default 0.05).
     - `max_angle_deg`: normal compatibility angle, degrees (default 60).
     - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `tmpl.hand_mask`).
@@ -327,7 +327,7 @@ def compatible_correspondences(
     `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.sscape.Scan, got {type(scan).__name__}.")
+        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
     dims: dict[str, int] = {}
     check_array(verts, "verts", ("V", 3), dims=dims)
     check_array(normals, "normals", ("V", 3), dims=dims)
@@ -375,12 +375,12 @@ def fit_similarity(template_landmarks: Float[Array, "L 3"], scan: Scan) -> Simil
 
     - `template_landmarks`: template positions of the scan's landmarks, in the scan's landmark
       order, shape `(L, 3)`, metres (e.g. `model.mean[vertex_of_each_scan_landmark]`).
-    - `scan`: a [`bodyprior.sscape.Scan`][] (one scan) with at least 4 present landmarks.
+    - `scan`: a [`bodyprior.registration.Scan`][] (one scan) with at least 4 present landmarks.
 
     **Returns:** a [`bodyprior.Similarity`][].
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.sscape.Scan, got {type(scan).__name__}.")
+        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
     dims: dict[str, int] = {}
     check_array(template_landmarks, "template_landmarks", ("L", 3), dims=dims)
     check_array(scan.landmarks, "scan.landmarks", ("L", 3), dims=dims, finite=False)
@@ -702,7 +702,7 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
     if not isinstance(config, FitConfig):
         raise ValueError(f"`config` must be a FitConfig, got {type(config).__name__}.")
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.sscape.Scan, got {type(scan).__name__}.")
+        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
     if shape_residual is not None and not callable(shape_residual):
         raise ValueError(
             f"`shape_residual` must be a callable (rest_vertices (V, 3)) -> (R,) or None, got "
@@ -822,9 +822,9 @@ def fit_sscape(
 
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on the template's topology (e.g.
       `learn(tmpl.restrict(pop.vertices), tmpl.faces, n_components=K, **tmpl.rig_kwargs())`).
-    - `scan`: one [`bodyprior.sscape.Scan`][] (metres); at least 4 of its present landmarks must be
+    - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks must be
       named in `tmpl.landmark_names`.
-    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][] (landmark vertices, hand mask).
+    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand mask).
     - `config`: a [`bodyprior.sscape.FitConfig`][].
     - `shape_residual`: optional `rest_vertices (V, 3) -> (R,)` residual vector added (unscaled)
       to the shape solves, whose data part is in millimetres (objective in mm^2). Must be
@@ -861,16 +861,16 @@ def fit_sscape_batch(
     """Fits many scans: `vmap` of the single-scan fit, spread over devices, in chunks.
 
     The scans (padded to a common point count, `point_mask` False on padding; see
-    [`bodyprior.sscape.pad_scans`][]) are cut into chunks of `chunk_size` scans; every device fits
+    [`bodyprior.registration.pad_scans`][]) are cut into chunks of `chunk_size` scans; every device fits
     its own slice of each chunk: on accelerators one jitted call per chunk whose scan axis is split
     over `devices` with `jax.sharding` (`Mesh` + `NamedSharding(mesh, PartitionSpec("scan"))`,
     compiled once), on CPUs one call per device (compiled once per device; the partitioned program
     deadlocks on host CPU devices). A tqdm bar counts the scans. See
-    [`bodyprior.sscape.batch_map`][] (`strategy`) and multi-process `jax.distributed` clusters.
+    [`bodyprior.registration.batch_map`][] (`strategy`) and multi-process `jax.distributed` clusters.
 
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus
 
-    - `scans`: a batched [`bodyprior.sscape.Scan`][] (leading axis B).
+    - `scans`: a batched [`bodyprior.registration.Scan`][] (leading axis B).
     - `init`: optional batched `SScapeFit` (leading axis B).
     - `devices`: devices to shard over (default: all of `jax.devices()`).
     - `chunk_size`: scans per jitted call, rounded up to a multiple of the device count (default:
@@ -882,7 +882,7 @@ def fit_sscape_batch(
     **Returns:** a batched [`bodyprior.sscape.SScapeFit`][] (leading axis B, NumPy-backed leaves on
     the host).
     """
-    from ._shard import batch_map
+    from ..registration._shard import batch_map
 
     model, st, coeffs, pose, sim = _prepare(model, scans, tmpl, config, shape_residual, init, True)
     fits = batch_map(

@@ -19,6 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._kinematics import Similarity, umeyama
+from .._stats import pca_host as _pca_host
 from .._validate import check_array
 from ._model import SScapeModel
 
@@ -122,20 +123,6 @@ def procrustes_align(
 
 # --------------------------------------------------------------------------------------------------
 # PCA
-
-
-def _pca_host(x: np.ndarray):
-    """PCA of `(N, D)` data in float64: returns mean, components `(R, D)`, singular values
-    `(R,)`."""
-    mu = x.mean(axis=0)
-    _, s, vt = np.linalg.svd(x - mu, full_matrices=False)
-    r = max(min(x.shape[0] - 1, x.shape[1]), 0)
-    vt, s = vt[:r], s[:r]
-    # Deterministic signs: the largest-magnitude entry of each component is positive.
-    pivot = np.argmax(np.abs(vt), axis=1)
-    signs = np.sign(vt[np.arange(r), pivot])
-    signs[signs == 0] = 1.0
-    return mu, vt * signs[:, None], s
 
 
 def _choose_components(ratio: np.ndarray, n_components, explained_variance) -> int:
@@ -523,3 +510,53 @@ def specificity(
     mean = dist.mean(0)
     var = dist.var(0)
     return Specificity(ms, mean, var, jnp.sqrt(dist.var(0, ddof=1)) / np.sqrt(s - 1), dist)
+
+
+# --------------------------------------------------------------------------------------------------
+# Held-out reconstruction (generalization to meshes outside the training set)
+
+
+@eqx.filter_jit
+def _reconstruction_kernel(mean, basis, x, ms: tuple[int, ...]):
+    def one(xi):
+        b = jnp.einsum("kvd,vd->k", basis, xi - mean)
+        out = []
+        for m in ms:
+            r = mean + jnp.tensordot(b[:m], basis[:m], axes=1)
+            out.append(jnp.mean(jnp.linalg.norm(r - xi, axis=-1)))
+        return jnp.stack(out)
+
+    return jax.lax.map(one, x, batch_size=8)
+
+
+def reconstruction_error(
+    model, meshes: Float[Array, "N V 3"], n_components, *, align: bool = True
+) -> np.ndarray:
+    """Generalization to held-out meshes: each mesh is rigidly aligned to the model's mean
+    (Kabsch, no scale) and projected onto the first `M` components; the error is the mean
+    per-vertex distance `D(x, x_hat)` of [`bodyprior.sscape.generalization`][], in metres.
+
+    Unlike the leave-one-out `generalization`, the space is learned once and the meshes are not in
+    its training set (e.g. ground-truth bodies of test scans).
+
+    **Arguments:**
+
+    - `model`: an [`bodyprior.sscape.SScapeModel`][].
+    - `meshes`: `(N, V, 3)` meshes in the model's topology, metres.
+    - `n_components`: one or several `M` in `[0, model.n_components]`.
+    - `align`: rigidly align each mesh to the model mean first.
+
+    **Returns:** NumPy `(N, len(n_components))` errors, metres.
+    """
+    dims: dict[str, int] = {}
+    check_array(meshes, "meshes", ("N", model.n_vertices, 3), dims=dims)
+    ms = (int(n_components),) if np.ndim(n_components) == 0 else tuple(int(m) for m in n_components)
+    if not ms or min(ms) < 0 or max(ms) > model.n_components:
+        raise ValueError(
+            f"`n_components` entries must lie in [0, {model.n_components}], got {list(ms)}."
+        )
+    x = jnp.asarray(meshes, model.mean.dtype)
+    if align:
+        x, _ = procrustes_align(x, reference=model.mean)
+    m_max = max(ms)
+    return np.asarray(_reconstruction_kernel(model.mean, model.basis[:m_max], x, ms))

@@ -70,8 +70,8 @@ from .._kinematics import world_transforms
 from .._rotations import rotation_to_matrix
 from .._topology import Topology
 from .._validate import check_array
+from ..registration._template import RegistrationTemplate
 from ._model import SScapeModel
-from ._template import RegistrationTemplate
 
 __all__ = [
     "PostureRig",
@@ -180,7 +180,7 @@ def posture_rig(template, *, weights: str = "cotangent") -> PostureRig:
 
     **Arguments:**
 
-    - `template`: a [`bodyprior.sscape.RegistrationTemplate`][] or
+    - `template`: a [`bodyprior.registration.RegistrationTemplate`][] or
       [`bodyprior.sscape.SScapeModel`][] (its mean is the rest mesh).
     - `weights`: `"cotangent"` (cotangent weights of the rest template, default) or `"uniform"`.
       They are computed once and used for every mesh, so `L` is one fixed linear operator.

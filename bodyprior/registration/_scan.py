@@ -34,7 +34,7 @@ the body, and two cameras above and below the projector triangulate it):
   `landmark_missing` (then `landmark_mask` is False and the position is 0).
 
 Frames and units: scans are in the frame of the body they were made from (world frame, metres, Z up,
-facing -Y); the floor is the body's lowest point. [`bodyprior.sscape.ScanTruth`][] keeps the exact
+facing -Y); the floor is the body's lowest point. [`bodyprior.registration.ScanTruth`][] keeps the exact
 surface point behind every scan point, for evaluation only: it is never given to a fitter.
 
 Speed (measured on the shared 2-core machine, one core, 13,380-vertex body, default config, about
@@ -84,7 +84,7 @@ class Scan(eqx.Module):
     - `points`: shape `(P, 3)`, metres.
     - `normals`: unit outward normals, shape `(P, 3)`.
     - `point_mask`: shape `(P,)`, bool; False marks padding rows (see
-      [`bodyprior.sscape.pad_scans`][]; padding rows repeat real points, so a consumer that ignored
+      [`bodyprior.registration.pad_scans`][]; padding rows repeat real points, so a consumer that ignored
       the mask would only see duplicates).
     - `landmarks`: shape `(L, 3)`, metres (0 where missing).
     - `landmark_mask`: shape `(L,)`, bool; False = the landmark is missing.
@@ -133,7 +133,7 @@ class Scan(eqx.Module):
 class ScanTruth(eqx.Module):
     """Ground truth of a simulated scan, for evaluation only (never passed to fitters).
 
-    **Fields** (P points; batched like [`bodyprior.sscape.Scan`][]):
+    **Fields** (P points; batched like [`bodyprior.registration.Scan`][]):
 
     - `face`: triangle of the source full-resolution mesh behind each point, shape `(P,)`, int32;
       -1 for stray outliers and padding.
@@ -174,7 +174,7 @@ class ScannerConfig:
     - `hole_fraction`: extra fraction of the raw hits removed in random discs (default 0).
     - `hole_radius`: radius of those discs (default 6 cm).
 
-    [`bodyprior.sscape.ScannerConfig.hard`][] gives the robustness setting of issue §8.
+    [`bodyprior.registration.ScannerConfig.hard`][] gives the robustness setting of issue §8.
     """
 
     n_heads: int = 4
@@ -515,10 +515,10 @@ def simulate_scan(
     - `landmark_positions`: true landmark positions on that body, shape `(L, 3)`
       (`vertices[body.landmark_index]`).
     - `landmark_names`: `L` names (`body.landmark_names`).
-    - `config`: a [`bodyprior.sscape.ScannerConfig`][].
+    - `config`: a [`bodyprior.registration.ScannerConfig`][].
 
-    **Returns:** `(scan, truth)`: a [`bodyprior.sscape.Scan`][] with `P = min(config.n_points, raw
-    hits)` points (all `point_mask` True) and its [`bodyprior.sscape.ScanTruth`][].
+    **Returns:** `(scan, truth)`: a [`bodyprior.registration.Scan`][] with `P = min(config.n_points, raw
+    hits)` points (all `point_mask` True) and its [`bodyprior.registration.ScanTruth`][].
     """
     if not isinstance(config, ScannerConfig):
         raise ValueError(f"`config` must be a ScannerConfig, got {type(config).__name__}.")
@@ -601,8 +601,8 @@ def pad_scans(
 
     **Arguments:**
 
-    - `scans`: a non-empty sequence of unbatched [`bodyprior.sscape.Scan`][]s (same landmark names),
-      or of [`bodyprior.sscape.ScanTruth`][]s.
+    - `scans`: a non-empty sequence of unbatched [`bodyprior.registration.Scan`][]s (same landmark names),
+      or of [`bodyprior.registration.ScanTruth`][]s.
     - `n_points`: points per scan after padding (default: the largest scan); a scan with more points
       is an error (sub-sample it first). Padding rows repeat the scan's own real points cyclically
       and have `point_mask` False (truth: `face` -1, `is_outlier` False).
@@ -663,7 +663,7 @@ def simulate_scans(
     *,
     progress: bool = True,
 ) -> tuple[Scan, ScanTruth]:
-    """Scans a population (a host loop over [`bodyprior.sscape.simulate_scan`][] with tqdm).
+    """Scans a population (a host loop over [`bodyprior.registration.simulate_scan`][] with tqdm).
 
     **Arguments:**
 
@@ -673,13 +673,13 @@ def simulate_scans(
     - `faces`: `(F, 3)` (`body.faces`).
     - `landmark_index`: vertex of each landmark, shape `(L,)` (`body.landmark_index`).
     - `landmark_names`: `L` names (`body.landmark_names`).
-    - `config`: a [`bodyprior.sscape.ScannerConfig`][].
+    - `config`: a [`bodyprior.registration.ScannerConfig`][].
     - `n_points`: padded points per scan (default `config.n_points`, or the largest scan when that
       is `None` or some scan has more).
     - `progress`: show a tqdm bar.
 
-    **Returns:** `(scans, truths)`: a batched [`bodyprior.sscape.Scan`][] and
-    [`bodyprior.sscape.ScanTruth`][] with leading axis `N`, padded to a common point count.
+    **Returns:** `(scans, truths)`: a batched [`bodyprior.registration.Scan`][] and
+    [`bodyprior.registration.ScanTruth`][] with leading axis `N`, padded to a common point count.
     """
     pv = check_array(population_vertices, "population_vertices", (None, None, 3))
     if pv.shape[0] < 1:
@@ -707,7 +707,7 @@ def simulate_scans(
 
 
 def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan:
-    """Validates a (possibly batched) [`bodyprior.sscape.Scan`][] on the host; returns it unchanged.
+    """Validates a (possibly batched) [`bodyprior.registration.Scan`][] on the host; returns it unchanged.
 
     Raises `ValueError` naming `name` (and the field) when the scan is not a `Scan`, has
     inconsistent shapes, fewer than `min_points` real points (in any scan of a batch), NaN or
@@ -717,7 +717,7 @@ def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan
     0.001). Traced scans are only checked for shapes.
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`{name}` must be a bodyprior.sscape.Scan, got {type(scan).__name__}.")
+        raise ValueError(f"`{name}` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
     if is_tracer(scan.points):
         return scan
     pts = np.asarray(scan.points, dtype=np.float64)

@@ -2,7 +2,7 @@
 
 Two per-vertex errors of a fitted template mesh, both reported in **millimetres**:
 
-- [`bodyprior.sscape.fitting_error`][]: the paper's measure, which needs no ground truth. For each
+- [`bodyprior.registration.fitting_error`][]: the paper's measure, which needs no ground truth. For each
   fitted template vertex the nearest scan point is found; if it lies within `max_dist` (50 mm) and
   the vertex normal and the scan point's normal differ by at most `max_angle_deg` (60 deg), the
   Euclidean vertex-to-point distance is the vertex's error, else the vertex has no error (`valid` is
@@ -10,14 +10,14 @@ Two per-vertex errors of a fitted template mesh, both reported in **millimetres*
   paper words it ("If this neighbor [is] not further ... than 50 mm and its face normals do not
   deviate more than 60 deg, the ... distance is computed"); `search="compatible"` instead takes the
   nearest point among the compatible ones (what the fitters' data terms use).
-- [`bodyprior.sscape.gt_error`][]: distance of each fitted vertex to its true corresponding vertex,
+- [`bodyprior.registration.gt_error`][]: distance of each fitted vertex to its true corresponding vertex,
   which only a simulated scan can provide (CAESAR has no ground-truth correspondence).
 
-Aggregations: [`bodyprior.sscape.cumulative_curve`][] (proportion of vertices below each threshold,
-the paper's Figs. 1a/2a, 0-20 mm and 0-50 mm) and [`bodyprior.sscape.mean_vertex_error`][] (the
+Aggregations: [`bodyprior.registration.cumulative_curve`][] (proportion of vertices below each threshold,
+the paper's Figs. 1a/2a, 0-20 mm and 0-50 mm) and [`bodyprior.registration.mean_vertex_error`][] (the
 per-vertex error averaged over scans, Fig. 1b), with figure helpers
-[`bodyprior.sscape.plot_cumulative_curves`][] (matplotlib Agg) and
-[`bodyprior.sscape.error_colormap_png`][] (the per-vertex error on the body).
+[`bodyprior.registration.plot_cumulative_curves`][] (matplotlib Agg) and
+[`bodyprior.registration.error_colormap_png`][] (the per-vertex error on the body).
 
 Kernels are written for one mesh and one scan; the `*_batch` forms `vmap` them over a leading axis.
 """
@@ -49,7 +49,6 @@ __all__ = [
     "gt_error",
     "mean_vertex_error",
     "plot_cumulative_curves",
-    "reconstruction_error",
 ]
 
 #: Default thresholds of the paper's two cumulative plots, millimetres.
@@ -77,7 +76,7 @@ def _scan_arrays(scan, name: str = "scan", batched: bool = False):
     for field in ("points", "normals", "point_mask"):
         if not hasattr(scan, field):
             raise ValueError(
-                f"`{name}` must be a bodyprior.sscape.Scan (with `points`, `normals`, "
+                f"`{name}` must be a bodyprior.registration.Scan (with `points`, `normals`, "
                 f"`point_mask`), got {type(scan).__name__} without `{field}`."
             )
     lead = ("N",) if batched else ()
@@ -196,7 +195,7 @@ def fitting_error(
     **Arguments:**
 
     - `vertices`: fitted mesh `(V, 3)`, metres, in the scan's frame.
-    - `scan`: a [`bodyprior.sscape.Scan`][] (`points (P, 3)`, unit `normals (P, 3)`,
+    - `scan`: a [`bodyprior.registration.Scan`][] (`points (P, 3)`, unit `normals (P, 3)`,
       `point_mask (P,)`).
     - `faces`: triangles `(F, 3)` of the mesh, for its normals; default: the registration
       template's faces (then `V` must be its vertex count).
@@ -204,7 +203,7 @@ def fitting_error(
     - `max_angle_deg`: normal gate, degrees (paper: 60).
     - `search`: `"nearest"` (paper, default) or `"compatible"`.
 
-    **Returns:** a [`bodyprior.sscape.FittingError`][] `(error_mm (V,), valid (V,), nearest (V,))`.
+    **Returns:** a [`bodyprior.registration.FittingError`][] `(error_mm (V,), valid (V,), nearest (V,))`.
     """
     dims: dict[str, int] = {}
     check_array(vertices, "vertices", ("V", 3), dims=dims)
@@ -229,7 +228,7 @@ def fitting_error_batch(
     max_angle_deg: float = 60.0,
     search: str = "nearest",
 ) -> FittingError:
-    """[`bodyprior.sscape.fitting_error`][] for `N` meshes and their `N` scans (vmapped).
+    """[`bodyprior.registration.fitting_error`][] for `N` meshes and their `N` scans (vmapped).
 
     `scans` is a batched `Scan` (leaves with a leading `N` axis, padded point clouds); split very
     large batches on the host. **Returns:** a `FittingError` whose
@@ -257,7 +256,7 @@ def gt_error(
     """Per-vertex distance to the true corresponding vertex, millimetres.
 
     Both meshes are in the same frame and vertex order (e.g. a registration in the scan frame and
-    the restricted ground-truth body, [`bodyprior.sscape.RegistrationTemplate.restrict`][]). Works
+    the restricted ground-truth body, [`bodyprior.registration.RegistrationTemplate.restrict`][]). Works
     on one mesh `(V, 3)` or any leading batch shape.
 
     **Returns:** `1000 * ||vertices - true_vertices||` per vertex, shape `(*batch, V)`.
@@ -366,7 +365,7 @@ def plot_cumulative_curves(
 
     **Arguments:**
 
-    - `curves`: label -> `(T,)` proportions (e.g. from [`bodyprior.sscape.cumulative_curve`][]).
+    - `curves`: label -> `(T,)` proportions (e.g. from [`bodyprior.registration.cumulative_curve`][]).
     - `thresholds_mm`: the shared thresholds `(T,)`.
     - `path`: output PNG (written atomically).
     - `title`, `xlabel`, `ylabel`: texts.
@@ -461,55 +460,3 @@ def error_colormap_png(
         np.concatenate(imgs, axis=1), vmin=0.0, vmax=vmax, cmap=cmap, label="error [mm]",
         title=title, path=path,
     )  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------------
-# Held-out reconstruction (generalization to meshes outside the training set)
-
-
-@eqx.filter_jit
-def _reconstruction_kernel(mean, basis, x, ms: tuple[int, ...]):
-    def one(xi):
-        b = jnp.einsum("kvd,vd->k", basis, xi - mean)
-        out = []
-        for m in ms:
-            r = mean + jnp.tensordot(b[:m], basis[:m], axes=1)
-            out.append(jnp.mean(jnp.linalg.norm(r - xi, axis=-1)))
-        return jnp.stack(out)
-
-    return jax.lax.map(one, x, batch_size=8)
-
-
-def reconstruction_error(
-    model, meshes: Float[Array, "N V 3"], n_components, *, align: bool = True
-) -> np.ndarray:
-    """Generalization to held-out meshes: each mesh is rigidly aligned to the model's mean
-    (Kabsch, no scale) and projected onto the first `M` components; the error is the mean
-    per-vertex distance `D(x, x_hat)` of [`bodyprior.sscape.generalization`][], in metres.
-
-    Unlike the leave-one-out `generalization`, the space is learned once and the meshes are not in
-    its training set (e.g. ground-truth bodies of test scans).
-
-    **Arguments:**
-
-    - `model`: an [`bodyprior.sscape.SScapeModel`][].
-    - `meshes`: `(N, V, 3)` meshes in the model's topology, metres.
-    - `n_components`: one or several `M` in `[0, model.n_components]`.
-    - `align`: rigidly align each mesh to the model mean first.
-
-    **Returns:** NumPy `(N, len(n_components))` errors, metres.
-    """
-    from ._learn import procrustes_align
-
-    dims: dict[str, int] = {}
-    check_array(meshes, "meshes", ("N", model.n_vertices, 3), dims=dims)
-    ms = (int(n_components),) if np.ndim(n_components) == 0 else tuple(int(m) for m in n_components)
-    if not ms or min(ms) < 0 or max(ms) > model.n_components:
-        raise ValueError(
-            f"`n_components` entries must lie in [0, {model.n_components}], got {list(ms)}."
-        )
-    x = jnp.asarray(meshes, model.mean.dtype)
-    if align:
-        x, _ = procrustes_align(x, reference=model.mean)
-    m_max = max(ms)
-    return np.asarray(_reconstruction_kernel(model.mean, model.basis[:m_max], x, ms))

@@ -116,7 +116,7 @@ _MM = 1000.0  # metres -> millimetres
 
 
 class NRDConfig(eqx.Module):
-    """Weights, schedule, correspondence rules and solver settings of [`bodyprior.sscape.nrd`][].
+    """Weights, schedule, correspondence rules and solver settings of [`bodyprior.registration.nrd`][].
 
     All fields are Python scalars (static under `jit`); defaults follow the paper and humanshape.
 
@@ -211,7 +211,7 @@ class NRDConfig(eqx.Module):
 
 
 class NRDResult(eqx.Module):
-    """Output of [`bodyprior.sscape.nrd`][] for one scan (a leading batch axis from `nrd_batch`).
+    """Output of [`bodyprior.registration.nrd`][] for one scan (a leading batch axis from `nrd_batch`).
 
     Per-round arrays have `R = 1 + config.n_data_rounds` entries (round 0 = landmarks and smoothness
     only); rounds not run (early stop) hold NaN (`-1` for integers).
@@ -805,13 +805,13 @@ def nrd(
       in correspondence with `tmpl` (`V = tmpl.n_vertices`). "NRD": the static template aligned to
       the scan by the landmark similarity (`fit_similarity(...).apply(tmpl.vertices)`); "S-SCAPE +
       NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
-    - `tmpl`: the [`bodyprior.sscape.RegistrationTemplate`][] (faces, landmarks, hand/head masks).
-    - `scan`: a [`bodyprior.sscape.Scan`][] (points, unit normals, masks, landmarks in metres);
+    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks, hand/head masks).
+    - `scan`: a [`bodyprior.registration.Scan`][] (points, unit normals, masks, landmarks in metres);
       landmarks are matched to the template's by name, missing ones are ignored.
-    - `config`: an [`bodyprior.sscape.NRDConfig`][]; `NRDConfig(constant_weights=True)` is NRD CW.
+    - `config`: an [`bodyprior.registration.NRDConfig`][]; `NRDConfig(constant_weights=True)` is NRD CW.
     - `throw`: raise if a round's solve did not converge (else inspect `result`).
 
-    **Returns:** an [`bodyprior.sscape.NRDResult`][].
+    **Returns:** an [`bodyprior.registration.NRDResult`][].
 
     **Raises:** `ValueError` for inputs of the wrong shape/type, non-finite values, or a scan
     without valid points.
@@ -838,12 +838,12 @@ def nrd_batch(
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
 ) -> NRDResult:
-    """[`bodyprior.sscape.nrd`][] for a batch of scans at once (`jax.vmap`, one jitted call).
+    """[`bodyprior.registration.nrd`][] for a batch of scans at once (`jax.vmap`, one jitted call).
 
     **Arguments:** as `nrd`, with a leading batch axis `B` on `init_vertices` and on every array of
     `scans` (padded point clouds; padding has `point_mask = False`).
 
-    **Returns:** an [`bodyprior.sscape.NRDResult`][] whose arrays have a leading axis `B`.
+    **Returns:** an [`bodyprior.registration.NRDResult`][] whose arrays have a leading axis `B`.
     """
     init = _check_inputs(init_vertices, tmpl, config, batched=True)
     arrays = _scan_arrays(scans, batched=True)

@@ -1,6 +1,6 @@
 """Running a per-item kernel over a large batch: vmap, spread over devices, in chunks.
 
-[`bodyprior.sscape.batch_map`][] is the engine of the batched registration entry points
+[`bodyprior.registration.batch_map`][] is the engine of the batched registration entry points
 (`fit_sscape_batch`; NRD and depth fitting can reuse it). The batch is cut into chunks of a fixed
 size (the last one padded by repeating its final item, so every chunk has the same shape and the
 kernel compiles once per device); every device fits its own slice of each chunk. Items are

@@ -1,7 +1,7 @@
 """Motion-capture poses for DSPP: CMU BVH clips retargeted onto the default body's `cmu_mb` rig.
 
 **Pose representation.** A pose is the local rotation of the 20 rig bones in
-[`bodyprior.dspp.POSE_JOINTS`][] as Euler angles in the order [`bodyprior.dspp.EULER_ORDER`][]
+[`bodyprior.POSE_JOINTS`][] as Euler angles in the order [`bodyprior.EULER_ORDER`][]
 (radians), in bodyprior's kinematics convention: world-aligned axes at the default body's A-pose
 rest (Z up, body facing -Y, +X = body's left; docs/architecture.md). The root (`Hips`) orientation
 is not part of a pose (as in the paper, which drops the Hips root because it is a global rotation),
@@ -85,16 +85,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._body import DefaultBody, evaluate, load_default_body, phenotype_vector, rest_shape
-from .._bvh import Bvh, read_bvh
-from .._render import contact_sheet, save_png
-from .._rotations import (
+from ._body import DefaultBody, evaluate, load_default_body, phenotype_vector, rest_shape
+from ._bvh import Bvh, read_bvh
+from ._render import contact_sheet, save_png
+from ._rotations import (
     axis_angle_to_matrix,
     euler_to_matrix,
     matrix_to_axis_angle,
     matrix_to_euler,
 )
-from .._validate import check_array, is_tracer
+from ._validate import check_array, is_tracer
 
 __all__ = [
     "EULER_ORDER",
@@ -120,7 +120,7 @@ POSE_JOINTS: tuple[str, ...] = (
     "RightUpLeg", "RightLeg", "RightFoot",
 )  # fmt: skip
 
-#: Euler order of [`bodyprior.dspp.PoseSet`][] angles (intrinsic, as
+#: Euler order of [`bodyprior.PoseSet`][] angles (intrinsic, as
 #: [`bodyprior.euler_to_matrix`][]; use `pose_rep="euler_" + EULER_ORDER`). Chosen on the shared
 #: CMU clips as the order whose middle angle comes least close to ±90° (gimbal lock).
 EULER_ORDER: str = "XYZ"
@@ -230,10 +230,10 @@ class PoseSet(eqx.Module):
     **Fields:**
 
     - `euler`: shape `(N, 20, 3)`, radians, Euler angles in order
-      [`bodyprior.dspp.EULER_ORDER`][] of the local rotations of `joint_names`.
+      [`bodyprior.EULER_ORDER`][] of the local rotations of `joint_names`.
     - `clip`: shape `(N,)`, int, index into `clip_names` of each pose's clip.
     - `clip_names`: static, one name per clip (`"<folder>/<file stem>"`).
-    - `joint_names`: static, [`bodyprior.dspp.POSE_JOINTS`][].
+    - `joint_names`: static, [`bodyprior.POSE_JOINTS`][].
     - `fps`: static, the sampling rate (poses per second of motion).
     """
 
@@ -287,8 +287,8 @@ def rig_pose(body: DefaultBody, euler: Float[Array, "20 3"]) -> Float[Array, "J 
     **Arguments:**
 
     - `body`: a [`bodyprior.DefaultBody`][] with the `cmu_mb` rig.
-    - `euler`: shape `(20, 3)`, radians, order [`bodyprior.dspp.EULER_ORDER`][], joints
-      [`bodyprior.dspp.POSE_JOINTS`][].
+    - `euler`: shape `(20, 3)`, radians, order [`bodyprior.EULER_ORDER`][], joints
+      [`bodyprior.POSE_JOINTS`][].
 
     **Returns:** shape `(J, 3)` axis-angle local rotations in `body.joint_names` order (root and
     non-pose bones zero), for [`bodyprior.evaluate`][]. Jittable, vmappable, differentiable.
@@ -303,7 +303,7 @@ def rig_pose(body: DefaultBody, euler: Float[Array, "20 3"]) -> Float[Array, "J 
 
 
 def pose_euler(body: DefaultBody, pose: Float[Array, "J 3"]) -> Float[Array, "20 3"]:
-    """DSPP pose from an axis-angle rig pose: the inverse of [`bodyprior.dspp.rig_pose`][].
+    """DSPP pose from an axis-angle rig pose: the inverse of [`bodyprior.rig_pose`][].
 
     The root and non-pose bones of `pose` are ignored.
 
@@ -312,7 +312,7 @@ def pose_euler(body: DefaultBody, pose: Float[Array, "J 3"]) -> Float[Array, "20
     - `body`: a [`bodyprior.DefaultBody`][] with the `cmu_mb` rig.
     - `pose`: shape `(J, 3)`, axis-angle local rotations (radians) in `body.joint_names` order.
 
-    **Returns:** shape `(20, 3)`, radians, Euler angles in [`bodyprior.dspp.EULER_ORDER`][].
+    **Returns:** shape `(20, 3)`, radians, Euler angles in [`bodyprior.EULER_ORDER`][].
     """
     idx = _pose_index(body.joint_names)
     check_array(pose, "pose", (body.n_joints, 3))
@@ -613,14 +613,14 @@ def load_mocap(
     - `body`: the rig to retarget to; default `bodyprior.load_default_body("cmu_mb")` at the
       default phenotypes.
     - `frame_rates`: true capture rates by directory-name substring, overriding the BVH header;
-      default [`bodyprior.dspp._mocap.DEFAULT_FRAME_RATES`][] (`{"salsa": 60.0}`).
+      default [`DEFAULT_FRAME_RATES` (`{"salsa": 60.0}`).
     - `min_duration`: seconds of motion below which a file is skipped.
     - `drop_implausible`: drop poses with impossible head/neck/spine rotations (corrupt frames, see
       the module docstring).
     - `info`: optional dict, filled with one entry per file (`str(path)` -> dict with `kind`,
       `frames`, `source_fps`, `poses`, `dropped`, `skipped`).
 
-    **Returns:** a [`bodyprior.dspp.PoseSet`][], clips in sorted file order.
+    **Returns:** a [`bodyprior.PoseSet`][], clips in sorted file order.
 
     **Raises:** `ValueError` for a missing path, no BVH files, a malformed file (file and line), an
     unknown skeleton, or when no file has enough motion.
@@ -686,7 +686,7 @@ def split_by_clip(
 
     **Arguments:**
 
-    - `poses`: a [`bodyprior.dspp.PoseSet`][] with at least two non-empty clips.
+    - `poses`: a [`bodyprior.PoseSet`][] with at least two non-empty clips.
     - `test_fraction`: target fraction of poses in the test set, in (0, 1).
     - `seed`: shuffling seed.
 
@@ -734,7 +734,7 @@ def render_poses(
     **Arguments:**
 
     - `body`: the default body with the `cmu_mb` rig.
-    - `euler`: shape `(n, 20, 3)`, radians, order [`bodyprior.dspp.EULER_ORDER`][].
+    - `euler`: shape `(n, 20, 3)`, radians, order [`bodyprior.EULER_ORDER`][].
     - `path`: PNG file to write (atomically).
     - `labels`, `ncols`, `view`, `cell_size`: as [`bodyprior.contact_sheet`][].
 

@@ -216,7 +216,7 @@ def read_scan(
     return_info: bool = False,
 ):
     """Reads a real scan (PLY/OBJ point cloud or mesh, optional CAESAR `.lnd`) as a
-    [`bodyprior.sscape.Scan`][] in metres.
+    [`bodyprior.registration.Scan`][] in metres.
 
     **Arguments:**
 

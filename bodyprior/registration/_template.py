@@ -97,8 +97,8 @@ class RegistrationTemplate(eqx.Module):
 def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplate:
     from .._body import load_default_body, rest_shape
     from .._population import sample_phenotypes
+    from .._stats import joint_regressor
     from ..assets._decimate import load_decimated
-    from ..assets.build import joint_regressor
 
     body = load_default_body(rig)
     full_template = np.asarray(body.template, np.float64)
@@ -172,7 +172,7 @@ def registration_template(
     - `n_fit`: sampled adult bodies used to fit the joint regressor (half as many more check it).
     - `regressor_size`: template vertices per joint in the regressor.
 
-    **Returns:** a [`bodyprior.sscape.RegistrationTemplate`][] (its `regressor_max_error` reports
+    **Returns:** a [`bodyprior.registration.RegistrationTemplate`][] (its `regressor_max_error` reports
     the held-out joint error of the refitted regressor).
     """
     if rig not in ("cmu_mb", "game_engine"):
