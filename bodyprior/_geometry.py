@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from ._topology import Topology
-from ._validate import check_array, check_range, is_tracer
+from ._validate import check_array, check_positive_int, check_range, is_tracer
 
 __all__ = [
     "barycentric_points",
@@ -482,15 +482,6 @@ def sample_surface(
 # --------------------------------------------------------------------------------------------------
 
 
-def _check_chunk(chunk_size) -> int:
-    if (
-        isinstance(chunk_size, bool)
-        or not isinstance(chunk_size, (int, np.integer))
-        or chunk_size < 1
-    ):
-        raise ValueError(f"`chunk_size` must be a positive Python int, got {chunk_size!r}.")
-    return int(chunk_size)
-
 
 def nearest_neighbors(
     queries: Float[ArrayLike, "Q 3"], points: Float[ArrayLike, "P 3"], *, chunk_size: int = 1024
@@ -515,7 +506,7 @@ def nearest_neighbors(
     points = _check_vertices(points, "points")
     if points.shape[0] == 0:
         raise ValueError("`points` must contain at least one point, got shape (0, 3).")
-    chunk_size = _check_chunk(chunk_size)
+    chunk_size = check_positive_int(chunk_size, "chunk_size")
     dtype = jnp.result_type(queries, points)
     queries, points = queries.astype(dtype), points.astype(dtype)
     if queries.shape[0] == 0:
@@ -628,7 +619,7 @@ def closest_points_on_mesh(
     faces = _check_faces(faces, vertices.shape[0])
     if faces.shape[0] == 0:
         raise ValueError("`faces` must contain at least one face, got shape (0, 3).")
-    chunk_size = _check_chunk(chunk_size)
+    chunk_size = check_positive_int(chunk_size, "chunk_size")
     dtype = jnp.result_type(queries, vertices)
     queries, vertices = queries.astype(dtype), vertices.astype(dtype)
     nq = queries.shape[0]

@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._rotations import euler_to_matrix
-from ._validate import check_array
+from ._validate import check_array, check_positive_int
 
 __all__ = [
     "generative_metrics",
@@ -137,15 +137,6 @@ def _check_set(x, name: str, item_shape) -> np.ndarray | Array:
     return x
 
 
-def _check_chunk(chunk_size) -> int:
-    if (
-        isinstance(chunk_size, bool)
-        or not isinstance(chunk_size, (int, np.integer))
-        or chunk_size < 1
-    ):
-        raise ValueError(f"`chunk_size` must be a positive int, got {chunk_size!r}.")
-    return int(chunk_size)
-
 
 def pairwise_distances(
     a: Float[ArrayLike, "N ..."],
@@ -179,7 +170,7 @@ def pairwise_distances(
         raise ValueError(f"`metric` must be a callable of two items, got {type(metric).__name__}.")
     a = _check_set(a, "a", None)
     b = _check_set(b, "b", a.shape[1:])
-    chunk_size = _check_chunk(chunk_size)
+    chunk_size = check_positive_int(chunk_size, "chunk_size")
     a, b = jnp.asarray(a), jnp.asarray(b)
     dtype = jnp.result_type(a.dtype, b.dtype, float)
     a, b = a.astype(dtype), b.astype(dtype)
@@ -264,7 +255,7 @@ def generative_metrics(
             )
     if train is not None:
         train = _check_set(train, "train", gen.shape[1:])
-    chunk_size = _check_chunk(chunk_size)
+    chunk_size = check_positive_int(chunk_size, "chunk_size")
 
     def dist(x, y):
         return np.asarray(pairwise_distances(x, y, metric, chunk_size=chunk_size), dtype=np.float64)

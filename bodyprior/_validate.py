@@ -79,3 +79,10 @@ def check_range(x, name: str, lo: float, hi: float):
         if a.size and (a.min() < lo or a.max() > hi):
             raise ValueError(f"`{name}` must lie in [{lo}, {hi}], got values in [{a.min()}, {a.max()}].")
     return x
+
+
+def check_positive_int(value, name: str) -> int:
+    """A positive Python (or NumPy) int, not a bool; else `ValueError` naming `name`."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"`{name}` must be a positive int, got {value!r}.")
+    return int(value)
