@@ -1,21 +1,26 @@
 """A synthetic population in correspondence: the stand-in for CAESAR (no licensed scans exist here).
 
 Bodies are drawn from a documented phenotype distribution (below), given random local changes for
-individual detail, and put in the standard standing posture of the template (A-pose) with small random
+individual detail, and put in the standard standing posture of the template (A-pose) with small
+random
 arm/leg/spine jitter, as CAESAR subjects never stand exactly in the template pose.
 
 Distribution (`scheme="caesar"`, the default):
 
-- age in years ~ U(age_range) (default 18-65), mapped to the phenotype age with anny's piecewise-linear
-  "morphological age" table (years [0, 1, 4, 11, 16, 18, 64, 110] -> [0, .05, .215, .415, .67, .77, .83, 1]);
+- age in years ~ U(age_range) (default 18-65), mapped to the phenotype age with anny's
+  piecewise-linear
+  "morphological age" table (years [0, 1, 4, 11, 16, 18, 64, 110] -> [0, .05, .215, .415, .67, .77,
+  .83, 1]);
 - sex ~ Bernoulli(1/2); gender = sex blended towards the other end by d ~ U(0, 0.1);
 - height ~ anny's WHO-calibrated Beta(alpha(age), beta(age)) for the sex (boys/girls tables);
 - weight ~ Beta with mean 0.40 + 0.20 (years - 18) / 47 and concentration 6 (BMI rises with age);
 - muscle ~ Beta(3, 3); proportions ~ Beta(2, 5) (mostly ideal); ethnicity ~ Dirichlet(1, 1, 1);
 - local changes (when the body is loaded with them) ~ N(0, local_sigma^2) clipped to [-1, 1].
 
-`scheme="anny"` instead follows anny's `SimpleShapeDistribution` exactly (U(0,1) gender, age-conditioned
-Betas for height, weight, muscle and proportions — its adult weight/muscle Betas are U-shaped, which gives
+`scheme="anny"` instead follows anny's `SimpleShapeDistribution` exactly (U(0,1) gender,
+age-conditioned
+Betas for height, weight, muscle and proportions — its adult weight/muscle Betas are U-shaped, which
+gives
 many extreme bodies), restricted to `age_range`.
 """
 
@@ -32,11 +37,13 @@ from tqdm.auto import tqdm
 from ._body import PHENOTYPES, DefaultBody, evaluate, load_default_body
 from .assets import load_asset
 
-# Joints jittered for the standing posture, with the standard deviation (degrees) of each axis-angle entry.
+# Joints jittered for the standing posture, with the standard deviation (degrees) of each axis-angle
+# entry.
 _JITTER = {
-    "LeftArm": 1.0, "RightArm": 1.0, "LeftForeArm": 0.8, "RightForeArm": 0.8, "LeftHand": 0.5,
-    "RightHand": 0.5, "LeftShoulder": 0.3, "RightShoulder": 0.3, "LeftUpLeg": 0.5, "RightUpLeg": 0.5,
-    "LeftLeg": 0.4, "RightLeg": 0.4, "LeftFoot": 0.3, "RightFoot": 0.3, "LowerBack": 0.3, "Spine": 0.3,
+    "LeftArm": 1.0, "RightArm": 1.0, "LeftForeArm": 0.8, "RightForeArm": 0.8,
+    "LeftHand": 0.5, "RightHand": 0.5, "LeftShoulder": 0.3, "RightShoulder": 0.3,
+    "LeftUpLeg": 0.5, "RightUpLeg": 0.5, "LeftLeg": 0.4, "RightLeg": 0.4,
+    "LeftFoot": 0.3, "RightFoot": 0.3, "LowerBack": 0.3, "Spine": 0.3,
     "Spine1": 0.3, "Neck": 0.4, "Neck1": 0.4, "Head": 0.5,
 }  # fmt: skip
 
@@ -77,7 +84,8 @@ def _calib(sex_name: str, dist: str):
 
 
 def _beta_cond(key, age, sex, dist):
-    """Sample anny's age-conditioned Beta for `dist`, boys' table where sex == 0, girls' elsewhere."""
+    """Sample anny's age-conditioned Beta for `dist`, boys' table where sex == 0, girls'
+    elsewhere."""
     out = []
     for name in ("boys", "girls"):
         ages, al, be = _calib(name, dist)
@@ -86,7 +94,8 @@ def _beta_cond(key, age, sex, dist):
 
 
 def sample_phenotypes(key, n: int, *, scheme: str = "caesar", age_range=(18.0, 65.0)):
-    """Phenotype vectors `(n, 11)`, ages in years `(n,)` and sexes `(n,)` from the documented distribution."""
+    """Phenotype vectors `(n, 11)`, ages in years `(n,)` and sexes `(n,)` from the documented
+    distribution."""
     a = load_asset()
     morph_years = a["calib_boys_morphological_age_mapping_morphological_age_anchors"]
     morph_age = a["calib_boys_morphological_age_mapping_anny_age_anchors"]
@@ -113,18 +122,24 @@ def sample_phenotypes(key, n: int, *, scheme: str = "caesar", age_range=(18.0, 6
         raise ValueError(f"`scheme` must be 'caesar' or 'anny', got {scheme!r}.")
     eth = jr.dirichlet(k[7], jnp.ones(3), (n,)) if scheme == "caesar" else jnp.full((n, 3), 0.5)
     cols = dict(
-        gender=gender, age=age, muscle=muscle, weight=weight, height=height, proportions=proportions,
+        gender=gender, age=age, muscle=muscle, weight=weight, height=height,
+        proportions=proportions,
         cupsize=jnp.full((n,), 0.5), firmness=jnp.full((n,), 0.5),
         african=eth[:, 0], asian=eth[:, 1], caucasian=eth[:, 2],
     )  # fmt: skip
     return jnp.stack([cols[p] for p in PHENOTYPES], 1), years, sex
 
 
-def standing_pose_jitter(key, body: DefaultBody, n: int, scale_deg: float = 4.0) -> Float[Array, "n J 3"]:
-    """Random axis-angle jitter `(n, J, 3)` around the template posture: N(0, (scale_deg * s_j)^2) per axis
+def standing_pose_jitter(
+    key, body: DefaultBody, n: int, scale_deg: float = 4.0
+) -> Float[Array, "n J 3"]:
+    """Random axis-angle jitter `(n, J, 3)` around the template posture: N(0, (scale_deg * s_j)^2)
+    per axis
     for the limb, spine and head joints (relative scales `s_j` in `_JITTER`), zero elsewhere."""
     s = np.array([_JITTER.get(name, 0.0) for name in body.joint_names])
-    return jr.normal(key, (n, body.n_joints, 3)) * jnp.asarray(s[None, :, None] * np.deg2rad(scale_deg))
+    return jr.normal(key, (n, body.n_joints, 3)) * jnp.asarray(
+        s[None, :, None] * np.deg2rad(scale_deg)
+    )
 
 
 @eqx.filter_jit
@@ -182,9 +197,13 @@ def sample_population(
 
     chunk = int(min(chunk, n))
     pad = (-n) % chunk
-    padded = [jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]) if pad else x for x in (phen, local, poses)]
+    padded = [
+        jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]) if pad else x for x in (phen, local, poses)
+    ]
     verts, joints = [], []
-    for s in tqdm(range(0, n + pad, chunk), desc="sampling bodies", disable=not progress, unit="chunk"):
+    for s in tqdm(
+        range(0, n + pad, chunk), desc="sampling bodies", disable=not progress, unit="chunk"
+    ):
         v, j = _eval_chunk(body, *(x[s : s + chunk] for x in padded))
         verts.append(v)
         joints.append(j)

@@ -1,9 +1,12 @@
 """Side-by-side agreement with anny 0.6.2 (needs the optional `compare` extra; skipped otherwise).
 
 Mapping: anny's `cmu_mb` rig has the same 31 bones in the same depth-first order as ours; its
-`anny-noeyes-notongue` topology keeps 13,348 of our 13,380 body vertices (`base_mesh_vertex_indices` maps
-them; the others are unattached vertices anny removes). Poses: anny's `local-ref` parameterisation with
-`root_identity_orientation` equals ours (rotations in world-aligned axes at each bone head); anny places the
+`anny-noeyes-notongue` topology keeps 13,348 of our 13,380 body vertices (`base_mesh_vertex_indices`
+maps
+them; the others are unattached vertices anny removes). Poses: anny's `local-ref` parameterisation
+with
+`root_identity_orientation` equals ours (rotations in world-aligned axes at each bone head); anny
+places the
 root head at its delta translation, so we pass it the rest root head to keep the body in place.
 """
 
@@ -23,7 +26,9 @@ pytestmark = pytest.mark.compare
 
 @pytest.fixture(scope="module")
 def models():
-    m = anny.Anny(rig="cmu_mb", topology="anny-noeyes-notongue", skinning_method="lbs").to(torch.float64)
+    m = anny.Anny(rig="cmu_mb", topology="anny-noeyes-notongue", skinning_method="lbs").to(
+        torch.float64
+    )
     return m, bp.load_default_body("cmu_mb", dtype=np.float64)
 
 
@@ -38,7 +43,9 @@ def test_rest_and_posed_vertices_match_anny(models):
     idx = m.base_mesh_vertex_indices.numpy()
     rng = np.random.default_rng(0)
     B = 6
-    phen = {k: torch.as_tensor(rng.uniform(0, 1, B), dtype=torch.float64) for k in m.phenotype_labels}
+    phen = {
+        k: torch.as_tensor(rng.uniform(0, 1, B), dtype=torch.float64) for k in m.phenotype_labels
+    }
     aa = torch.as_tensor(rng.normal(0, 0.4, (B, 31, 3)), dtype=torch.float64)
     with torch.no_grad():
         rest = m(pose_parameters=None, phenotype_kwargs=phen)

@@ -63,7 +63,8 @@ def test_target_parsing(tmp_path):
 
 def test_rig_order_and_points(tmp_path):
     rig = {
-        "Child": {"parent": "Root", "roll": 0.5, "head": {"strategy": "CUBE", "cube_name": "joint-a"},
+        "Child": {"parent": "Root", "roll": 0.5,
+                  "head": {"strategy": "CUBE", "cube_name": "joint-a"},
                   "tail": {"strategy": "VERTEX", "vertex_index": 2}},
         "Root": {"parent": "", "roll": 0.0, "head": {"strategy": "MEAN", "vertex_indices": [0, 1]},
                  "tail": {"strategy": "CUBE", "cube_name": "joint-a"}},
@@ -71,7 +72,10 @@ def test_rig_order_and_points(tmp_path):
     weights = {"weights": {"Root": [[0, 1.0], [1, 0.5]], "Child": [[1, 0.5], [2, 1.0]]}}
     w = _wheel(
         tmp_path,
-        {S.DATA + "rigs/standard/rig.t.json": json.dumps(rig), S.DATA + "rigs/standard/weights.t.json": json.dumps(weights)},
+        {
+            S.DATA + "rigs/standard/rig.t.json": json.dumps(rig),
+            S.DATA + "rigs/standard/weights.t.json": json.dumps(weights),
+        },
     )
     labels, parents, heads, tails, rolls, bw = S.rig(w, "t", {"joint-a": [[0, 1, 4]]})
     assert labels == ["Root", "Child"] and parents == [-1, 0]  # root first, depth-first

