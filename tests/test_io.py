@@ -179,37 +179,33 @@ def test_binary_ply_quads_big_endian_and_extra_props(tmp_path):
     np.testing.assert_array_equal(f2, [[0, 1, 2], [0, 2, 3]])
 
 
-def test_read_errors_name_the_file(tmp_path):
-    missing = tmp_path / "missing.ply"
+_BAD_FILES = [
+    ("empty.obj", "", r"empty\.obj.*empty"),
+    ("nan.obj", "v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", r"nan\.obj.*NaN"),
+    ("range.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n", r"range\.obj.*face indices"),
+    ("zero.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", r"zero\.obj.*1-based"),
+    ("bad.ply", "not a ply", r"bad\.ply.*not a PLY"),
+    ("x.stl", "solid", r"x\.stl.*extension"),
+    ("nov.obj", "# nothing\n", r"nov\.obj.*no 'v' lines"),
+]
+
+
+@pytest.mark.parametrize(("name", "text", "match"), _BAD_FILES, ids=[b[0] for b in _BAD_FILES])
+def test_read_errors_name_the_file(tmp_path, name, text, match):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(ValueError, match=match):
+        read_mesh(tmp_path / name)
+
+
+def test_read_errors_missing_and_truncated(tmp_path):
     with pytest.raises(ValueError, match=r"missing\.ply.*does not exist"):
-        read_mesh(missing)
-    (tmp_path / "empty.obj").write_text("")
-    with pytest.raises(ValueError, match=r"empty\.obj.*empty"):
-        read_mesh(tmp_path / "empty.obj")
-    (tmp_path / "nan.obj").write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(ValueError, match=r"nan\.obj.*NaN"):
-        read_mesh(tmp_path / "nan.obj")
-    (tmp_path / "range.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n")
-    with pytest.raises(ValueError, match=r"range\.obj.*face indices"):
-        read_mesh(tmp_path / "range.obj")
-    (tmp_path / "zero.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n")
-    with pytest.raises(ValueError, match=r"zero\.obj.*1-based"):
-        read_mesh(tmp_path / "zero.obj")
+        read_mesh(tmp_path / "missing.ply")
     v, f = _mesh()
     write_ply(tmp_path / "trunc.ply", v, f)
     raw = (tmp_path / "trunc.ply").read_bytes()
     (tmp_path / "trunc.ply").write_bytes(raw[: len(raw) // 2])
     with pytest.raises(ValueError, match=r"trunc\.ply.*truncated"):
         read_mesh(tmp_path / "trunc.ply")
-    (tmp_path / "bad.ply").write_text("not a ply")
-    with pytest.raises(ValueError, match=r"bad\.ply.*not a PLY"):
-        read_mesh(tmp_path / "bad.ply")
-    (tmp_path / "x.stl").write_text("solid")
-    with pytest.raises(ValueError, match=r"x\.stl.*extension"):
-        read_mesh(tmp_path / "x.stl")
-    (tmp_path / "nov.obj").write_text("# nothing\n")
-    with pytest.raises(ValueError, match=r"nov\.obj.*no 'v' lines"):
-        read_mesh(tmp_path / "nov.obj")
 
 
 def test_writer_validation(tmp_path):
