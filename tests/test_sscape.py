@@ -309,7 +309,7 @@ def test_generalization(model, getkey):
     assert np.all(np.diff(np.asarray(g.mean)) < 0)
     # Noise-free data of rank 5: leave-one-out reconstruction with 5 components is exact.
     g0 = generalization(meshes, [2, 5])
-    assert float(g0.mean[1]) < 1e-9 < float(g0.mean[0])
+    assert float(g0.mean[1]) / 1e3 < 1e-9 < float(g0.mean[0]) / 1e3  # mm -> m
     # Brute-force check of one left-out mesh against a direct SVD.
     x = np.asarray(noisy).reshape(16, -1)
     others = np.delete(x, 3, axis=0)
@@ -317,12 +317,33 @@ def test_generalization(model, getkey):
     _, _, vt = np.linalg.svd(others - mu, full_matrices=False)
     r = (x[3] - mu) - vt[:2].T @ (vt[:2] @ (x[3] - mu))
     np.testing.assert_allclose(
-        g.errors[3, 2], np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8
-    )
+        g.errors[3, 2] / 1e3, np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8
+    )  # errors in mm, meshes in metres
     gs = generalization(noisy, 3, n_train=8)
     assert gs.errors.shape == (16, 1)
     with pytest.raises(ValueError, match="n_components"):
         generalization(noisy, [15])
+
+
+def test_quality_measures_report_mm(model, getkey):
+    """Regression: generalization / specificity / reconstruction_error returned metres while every
+    other reported error is in mm. With M = 0 the reconstruction is the mean, so each is 1000 x a
+    mean vertex distance computed here in metres."""
+    from bodyprior.sscape import reconstruction_error
+
+    meshes, _ = _low_rank_meshes(model, getkey(), n=6, rigid=False)
+    x = np.asarray(meshes)
+    d = lambda a, b: np.linalg.norm(a - b, axis=-1).mean()  # noqa: E731
+    g = generalization(meshes, [0])
+    loo = [d(x[j], np.delete(x, j, 0).mean(0)) for j in range(6)]
+    np.testing.assert_allclose(g.errors[:, 0], 1e3 * np.asarray(loo), rtol=1e-10)
+    np.testing.assert_allclose(g.mean, 1e3 * np.mean(loo), rtol=1e-10)
+    learned = learn(meshes, model.faces, align=False)
+    s = specificity(learned, meshes, [0, 1], key=getkey(), n_samples=3)
+    mu = np.asarray(learned.mean)
+    np.testing.assert_allclose(s.mean[0], 1e3 * min(d(mu, xi) for xi in x), rtol=1e-10)
+    r = reconstruction_error(learned, meshes, [0], align=False)
+    np.testing.assert_allclose(r[:, 0], 1e3 * np.array([d(xi, mu) for xi in x]), rtol=1e-10)
 
 
 def test_specificity(model, getkey):
@@ -335,7 +356,7 @@ def test_specificity(model, getkey):
     d_mean = jnp.min(
         jax.vmap(lambda x: jnp.mean(jnp.linalg.norm(x - learned.mean, axis=-1)))(meshes)
     )
-    np.testing.assert_allclose(s.distances[:, 0], d_mean, rtol=1e-10)
+    np.testing.assert_allclose(s.distances[:, 0] / 1e3, d_mean, rtol=1e-10)  # mm -> m
     # Brute force for a few samples: ML Gaussian of the projected training data, nearest neighbour.
     x = np.asarray(meshes).reshape(30, -1)
     b = np.asarray(learned.basis).reshape(learned.n_components, -1)[:5]
@@ -348,12 +369,12 @@ def test_specificity(model, getkey):
         for col, m in enumerate((0, 1, 3, 5)):
             y = np.asarray(learned.mean).reshape(-1) + samples[i, :m] @ b[:m]
             d = np.linalg.norm((x - y).reshape(30, -1, 3), axis=-1).mean(-1)
-            np.testing.assert_allclose(s.distances[i, col], d.min(), rtol=1e-8)
+            np.testing.assert_allclose(s.distances[i, col] / 1e3, d.min(), rtol=1e-8)
     # A sample that is a training shape is at distance zero: a model whose samples all coincide with
     # the one training mesh it was built from.
     one = learn(jnp.stack([meshes[0], meshes[0]]), model.faces, align=False)
     s1 = specificity(one, meshes[:1], [0, 1], key=key, n_samples=4)
-    np.testing.assert_allclose(s1.mean, 0, atol=1e-12)
+    np.testing.assert_allclose(s1.mean / 1e3, 0, atol=1e-12)
     with pytest.raises(ValueError, match="n_components"):
         specificity(learned, meshes, [learned.n_components + 1], key=getkey())
 
