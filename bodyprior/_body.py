@@ -57,16 +57,39 @@ _INTERPOLATED = {  # feature -> (variations in asset order, first anchor, last a
     "firmness": (("minfirmness", "averagefirmness", "maxfirmness"), 0.0, 1.0),
 }
 RIGS = ("cmu_mb", "game_engine")
+# Valid range of each phenotype entry (values outside are rejected; anny would clamp them).
+_PHENOTYPE_RANGES = {k: (-1.0 / 3.0, 1.0) if k == "age" else (0.0, 1.0) for k in PHENOTYPES}
+_PHENOTYPE_HINTS = {
+    "gender": " (0 = male, 1 = female)",
+    "age": " (-1/3 = newborn, 0 = baby, 1/3 = child, 2/3 = young adult ~25 y, 1 = old ~90 y)",
+    "height": " (0 = min, 1 = max; not a length)",
+}
+
+
+def _range_text(k: str) -> str:
+    lo, hi = _PHENOTYPE_RANGES[k]
+    return f"[{'-1/3' if k == 'age' else f'{lo:g}'}, {hi:g}]{_PHENOTYPE_HINTS.get(k, '')}"
 
 
 def phenotype_vector(**values: float) -> np.ndarray:
     """A phenotype vector, shape `(11,)`, from keyword values; unspecified entries are 0.5 (anny's default).
 
-    **Example:** `phenotype_vector(gender=1.0, age=0.7, weight=0.8)`.
+    Every entry lies in [0, 1] except `age`, in [-1/3, 1] (see [`bodyprior.PHENOTYPES`][]). `gender` 0 is
+    male and 1 is female (at `age=2/3`, gender 0 is ~14 cm taller, gender 1 has more breast and hip).
+
+    **Example:** `phenotype_vector(gender=1.0, age=0.7, weight=0.8)` (a woman, somewhat older than a young
+    adult, somewhat heavy).
+
+    **Raises:** `ValueError` naming the entry for an unknown name or a value outside the entry's range.
     """
     unknown = set(values) - set(PHENOTYPES)
     if unknown:
         raise ValueError(f"unknown phenotype(s) {sorted(unknown)}; expected some of {PHENOTYPES}.")
+    for k, v in values.items():
+        x = float(v)
+        lo, hi = _PHENOTYPE_RANGES[k]
+        if not lo <= x <= hi:  # NaN fails too
+            raise ValueError(f"`{k}` must lie in {_range_text(k)}, got {x}.")
     return np.array([float(values.get(k, 0.5)) for k in PHENOTYPES])
 
 
@@ -313,9 +336,29 @@ def _shape_terms(body: DefaultBody, phenotypes, local_changes, facial_actions):
     return terms
 
 
-def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_actions):
+def _check_phenotypes(phenotypes):
+    """Each entry within its own range: a `ValueError` on the host, `eqx.error_if` when traced."""
     check_array(phenotypes, "phenotypes", (len(PHENOTYPES),))
-    check_range(phenotypes, "phenotypes", -1.0 / 3.0, 1.0)
+    lo = np.array([_PHENOTYPE_RANGES[k][0] for k in PHENOTYPES])
+    hi = np.array([_PHENOTYPE_RANGES[k][1] for k in PHENOTYPES])
+    messages = tuple(
+        f"`phenotypes[{i}]` ({k}) must lie in {_range_text(k)}." for i, k in enumerate(PHENOTYPES)
+    )
+    if is_tracer(phenotypes):
+        p = jnp.asarray(phenotypes)
+        bad = (p < jnp.asarray(lo, p.dtype)) | (p > jnp.asarray(hi, p.dtype))
+        return eqx.branched_error_if(p, jnp.any(bad), jnp.argmax(bad), messages)
+    a = np.asarray(phenotypes, np.float64)
+    bad = np.flatnonzero((a < lo) | (a > hi))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"{messages[i][:-1]}, got {a[i]}.")
+    return phenotypes
+
+
+def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_actions):
+    """Validates the shape inputs; returns `phenotypes` (carrying the range check when traced)."""
+    phenotypes = _check_phenotypes(phenotypes)
     if local_changes is not None:
         if body.local_basis is None:
             raise ValueError("`local_changes` given but the body was loaded without them: "
@@ -328,6 +371,7 @@ def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_act
                              "use load_default_body(facial_actions=True).")
         check_array(facial_actions, "facial_actions", (len(body.face_labels),))
         check_range(facial_actions, "facial_actions", 0.0, 1.0)
+    return phenotypes
 
 
 def rest_shape(
@@ -341,14 +385,15 @@ def rest_shape(
     **Arguments:**
 
     - `body`: the [`bodyprior.DefaultBody`][].
-    - `phenotypes`: shape `(11,)`, order [`bodyprior.PHENOTYPES`][], values in [0, 1] (age down to -1/3 for
-      newborns); see [`bodyprior.phenotype_vector`][].
+    - `phenotypes`: shape `(11,)`, order [`bodyprior.PHENOTYPES`][], values in [0, 1] (age in [-1/3, 1],
+      down to newborns); `gender` 0 = male, 1 = female; see [`bodyprior.phenotype_vector`][]. An entry
+      outside its range raises a `ValueError` naming it (under `jit`, a runtime `eqx.error_if` error).
     - `local_changes`: optional, shape `(C,)`, in [-1, 1] (needs `local_changes=True` at load).
     - `facial_actions`: optional, shape `(52,)`, in [0, 1] (needs `facial_actions=True` at load).
 
     **Returns:** `(vertices (V, 3), joints (J, 3))`, metres, A-pose rest frame (Z up, facing -Y).
     """
-    _check_shape_inputs(body, phenotypes, local_changes, facial_actions)
+    phenotypes = _check_shape_inputs(body, phenotypes, local_changes, facial_actions)
     terms = _shape_terms(body, phenotypes, local_changes, facial_actions)
     disp = sum(c @ B for c, B, _ in terms)
     jdisp = sum(jnp.einsum("r,rjc->jc", c, Bj) for c, _, Bj in terms)

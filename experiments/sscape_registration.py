@@ -279,8 +279,8 @@ def learned_space_quality(train_meshes, test_meshes, tmpl, k, key, n_samples):
         rec.append(float(err.mean() * 1000))
     return dict(
         components=list(comps),
-        generalization_mm=[float(x) * 1000 for x in np.asarray(gen.mean)],
-        specificity_mm=[float(x) * 1000 for x in np.asarray(spec.mean)],
+        generalization_mm=[float(x) for x in np.asarray(gen.mean)],  # already mm
+        specificity_mm=[float(x) for x in np.asarray(spec.mean)],
         test_reconstruction_mm=rec,
         explained_variance=[float(x) for x in np.cumsum(np.asarray(space.explained_variance))],
     )

@@ -74,7 +74,8 @@ SIZES = {
 
 
 def _mm(x):
-    return (1000.0 * np.asarray(x, np.float64)).round(3).tolist()
+    """Millimetre values (the sscape quality measures already report mm), rounded to 1 um."""
+    return np.asarray(x, np.float64).round(3).tolist()
 
 
 def _ms(components, n_train):

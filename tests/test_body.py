@@ -167,6 +167,38 @@ def test_evaluate_grad_vmap_and_no_recompile(body, getkey):
     assert v1.shape == (4, 13380, 3) and not np.allclose(v1, v2)
 
 
+def test_phenotype_ranges_are_checked_per_entry(body):
+    """Regression: phenotype_vector accepted gender=1.5 / height=180, evaluate's range error named
+    no entry (and used age's bound for all), and under jit nothing was checked."""
+    male_female = r"`gender` must lie in \[0, 1\] \(0 = male, 1 = female\), got 1.5"
+    with pytest.raises(ValueError, match=male_female):
+        bp.phenotype_vector(gender=1.5)
+    with pytest.raises(ValueError, match=r"`height` must lie in \[0, 1\].*got 180"):
+        bp.phenotype_vector(height=180)
+    with pytest.raises(ValueError, match=r"`age` must lie in \[-1/3, 1\]"):
+        bp.phenotype_vector(age=-0.5)
+    with pytest.raises(ValueError, match="`weight`"):
+        bp.phenotype_vector(weight=float("nan"))
+    assert bp.phenotype_vector(age=-1 / 3, gender=0.0)[1] == -1 / 3  # the ends are valid
+    p = np.asarray(bp.phenotype_vector())
+    height = r"`phenotypes\[4\]` \(height\) must lie in \[0, 1\].*got 1.2"
+    with pytest.raises(ValueError, match=height):
+        bp.evaluate(body, _with(p, 4, 1.2))
+    # gender's own bound is 0, not age's -1/3
+    with pytest.raises(ValueError, match=r"`phenotypes\[0\]` \(gender\) must lie in \[0, 1\]"):
+        bp.rest_shape(body, _with(p, 0, -0.2))
+    rest = eqx.filter_jit(lambda q: bp.rest_shape(body, q)[0])
+    assert np.isfinite(np.asarray(rest(jnp.asarray(p)))).all()
+    with pytest.raises((ValueError, RuntimeError), match=r"`phenotypes\[3\]` \(weight\)"):
+        jax.block_until_ready(rest(jnp.asarray(_with(p, 3, 1.5))))
+
+
+def _with(p, i, x):
+    q = np.array(p, dtype=np.float64)
+    q[i] = x
+    return q
+
+
 def test_bad_inputs(body):
     with pytest.raises(ValueError, match="phenotypes"):
         bp.rest_shape(body, np.zeros(10))

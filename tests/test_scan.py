@@ -1,6 +1,7 @@
 """Virtual laser scanner (holes, noise, outliers, normals, landmarks, density) and scan IO."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -397,3 +398,38 @@ def test_registration_rejects_bad_scans(subject, tmpl, size_space):
             sscape.fit_sscape(size_space, bad, tmpl)
         with pytest.raises(ValueError, match=msg):
             registration.nrd(init, tmpl, bad)
+
+
+def test_zero_point_scan_rejected_by_every_entry_point(subject, tmpl, size_space):
+    """Regression: a scan with P = 0 points failed inside numpy ("cannot reshape array of size 0
+    into shape (0,3)"); every entry point taking scans names the argument and what it expects."""
+    scan, _ = registration.simulate_scan(
+        jr.PRNGKey(6), *subject, registration.ScannerConfig(n_points=500)
+    )
+    zero = registration.Scan(
+        jnp.zeros((0, 3)), jnp.zeros((0, 3)), jnp.zeros((0,), bool), scan.landmarks,
+        scan.landmark_mask, scan.landmark_names,
+    )  # fmt: skip
+    zeros = jax.tree_util.tree_map(lambda x: x[None], zero)
+    init = jnp.asarray(tmpl.vertices, jnp.float64)
+
+    def msg(name):
+        return rf"`{name}` is empty: no real points \(`{name}.points` has shape \(0, 3\)\); expect"
+
+    calls = [
+        ("scan", lambda: registration.check_scan(zero, min_points=1)),
+        ("scan", lambda: sscape.fit_sscape(size_space, zero, tmpl)),
+        ("scan", lambda: registration.nrd(init, tmpl, zero)),
+        ("scan", lambda: registration.fitting_error(init, zero, faces=tmpl.faces)),
+        ("front_scan", lambda: sscape.fit_depth(size_space, zero, scan, tmpl)),
+    ]
+    for name, call in calls:
+        with pytest.raises(ValueError, match=msg(name)):
+            call()
+    batched = r"`scans` is empty: no real points \(`scans.points` has shape \(1, 0, 3\)\)"
+    with pytest.raises(ValueError, match=batched):
+        sscape.fit_sscape_batch(size_space, zeros, tmpl)
+    with pytest.raises(ValueError, match=batched):
+        registration.nrd_batch(init[None], tmpl, zeros)
+    with pytest.raises(ValueError, match=r"`scans` is empty"):
+        registration.fitting_error_batch(init[None], zeros, faces=tmpl.faces)

@@ -309,7 +309,7 @@ def test_generalization(model, getkey):
     assert np.all(np.diff(np.asarray(g.mean)) < 0)
     # Noise-free data of rank 5: leave-one-out reconstruction with 5 components is exact.
     g0 = generalization(meshes, [2, 5])
-    assert float(g0.mean[1]) < 1e-9 < float(g0.mean[0])
+    assert float(g0.mean[1]) / 1e3 < 1e-9 < float(g0.mean[0]) / 1e3  # mm -> m
     # Brute-force check of one left-out mesh against a direct SVD.
     x = np.asarray(noisy).reshape(16, -1)
     others = np.delete(x, 3, axis=0)
@@ -317,12 +317,33 @@ def test_generalization(model, getkey):
     _, _, vt = np.linalg.svd(others - mu, full_matrices=False)
     r = (x[3] - mu) - vt[:2].T @ (vt[:2] @ (x[3] - mu))
     np.testing.assert_allclose(
-        g.errors[3, 2], np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8
-    )
+        g.errors[3, 2] / 1e3, np.linalg.norm(r.reshape(-1, 3), axis=1).mean(), rtol=1e-8
+    )  # errors in mm, meshes in metres
     gs = generalization(noisy, 3, n_train=8)
     assert gs.errors.shape == (16, 1)
     with pytest.raises(ValueError, match="n_components"):
         generalization(noisy, [15])
+
+
+def test_quality_measures_report_mm(model, getkey):
+    """Regression: generalization / specificity / reconstruction_error returned metres while every
+    other reported error is in mm. With M = 0 the reconstruction is the mean, so each is 1000 x a
+    mean vertex distance computed here in metres."""
+    from bodyprior.sscape import reconstruction_error
+
+    meshes, _ = _low_rank_meshes(model, getkey(), n=6, rigid=False)
+    x = np.asarray(meshes)
+    d = lambda a, b: np.linalg.norm(a - b, axis=-1).mean()  # noqa: E731
+    g = generalization(meshes, [0])
+    loo = [d(x[j], np.delete(x, j, 0).mean(0)) for j in range(6)]
+    np.testing.assert_allclose(g.errors[:, 0], 1e3 * np.asarray(loo), rtol=1e-10)
+    np.testing.assert_allclose(g.mean, 1e3 * np.mean(loo), rtol=1e-10)
+    learned = learn(meshes, model.faces, align=False)
+    s = specificity(learned, meshes, [0, 1], key=getkey(), n_samples=3)
+    mu = np.asarray(learned.mean)
+    np.testing.assert_allclose(s.mean[0], 1e3 * min(d(mu, xi) for xi in x), rtol=1e-10)
+    r = reconstruction_error(learned, meshes, [0], align=False)
+    np.testing.assert_allclose(r[:, 0], 1e3 * np.array([d(xi, mu) for xi in x]), rtol=1e-10)
 
 
 def test_specificity(model, getkey):
@@ -335,7 +356,7 @@ def test_specificity(model, getkey):
     d_mean = jnp.min(
         jax.vmap(lambda x: jnp.mean(jnp.linalg.norm(x - learned.mean, axis=-1)))(meshes)
     )
-    np.testing.assert_allclose(s.distances[:, 0], d_mean, rtol=1e-10)
+    np.testing.assert_allclose(s.distances[:, 0] / 1e3, d_mean, rtol=1e-10)  # mm -> m
     # Brute force for a few samples: ML Gaussian of the projected training data, nearest neighbour.
     x = np.asarray(meshes).reshape(30, -1)
     b = np.asarray(learned.basis).reshape(learned.n_components, -1)[:5]
@@ -348,12 +369,12 @@ def test_specificity(model, getkey):
         for col, m in enumerate((0, 1, 3, 5)):
             y = np.asarray(learned.mean).reshape(-1) + samples[i, :m] @ b[:m]
             d = np.linalg.norm((x - y).reshape(30, -1, 3), axis=-1).mean(-1)
-            np.testing.assert_allclose(s.distances[i, col], d.min(), rtol=1e-8)
+            np.testing.assert_allclose(s.distances[i, col] / 1e3, d.min(), rtol=1e-8)
     # A sample that is a training shape is at distance zero: a model whose samples all coincide with
     # the one training mesh it was built from.
     one = learn(jnp.stack([meshes[0], meshes[0]]), model.faces, align=False)
     s1 = specificity(one, meshes[:1], [0, 1], key=key, n_samples=4)
-    np.testing.assert_allclose(s1.mean, 0, atol=1e-12)
+    np.testing.assert_allclose(s1.mean / 1e3, 0, atol=1e-12)
     with pytest.raises(ValueError, match="n_components"):
         specificity(learned, meshes, [learned.n_components + 1], key=getkey())
 
@@ -540,6 +561,92 @@ def test_humanshape_pose_mapping(tiny, tmp_path, getkey):
     np.testing.assert_allclose(v, expected, atol=1e-12)
     with pytest.raises(ValueError, match="pose_vector"):
         humanshape_pose(rig, jnp.zeros(5))
+
+
+# humanshape's released 25-joint tree (1-based id: parent id) and its 15 skinned segments.
+_HS_PARENTS = {
+    1: 0, 24: 1, 2: 24, 3: 2, 4: 3, 5: 4, 23: 1, 6: 23, 7: 6, 8: 7, 9: 8, 10: 1, 25: 10, 11: 25,
+    12: 11, 13: 11, 14: 13, 15: 14, 16: 15, 17: 16, 18: 11, 19: 18, 20: 19, 21: 20, 22: 21,
+}  # fmt: skip
+_HS_SEGMENTS = {1: 0, 3: 1, 4: 3, 5: 4, 7: 1, 8: 7, 9: 8, 11: 1, 12: 11, 15: 11, 16: 15, 17: 16,
+                20: 11, 21: 20, 22: 21}  # fmt: skip  (segment: nearest skinned ancestor)
+
+
+def _write_synthetic_humanshape(directory, seed=0):
+    """A humanshape-format directory with the released rig's joint tree (synthetic geometry)."""
+    import scipy.io
+
+    rng = np.random.default_rng(seed)
+    pairs = []  # per vertex: [(id, w), (id, w)]
+    for seg, par in _HS_SEGMENTS.items():
+        for _ in range(6):
+            pairs.append([(seg, 1.0), (1, 0.0)])
+        if par:
+            for w in (0.3, 0.5, 0.7):
+                pairs.append([(seg, w), (par, 1.0 - w)])
+    nv = len(pairs)
+    verts = rng.normal(0.0, 300.0, (nv, 3))
+    faces = np.stack([np.arange(nv), np.roll(np.arange(nv), 1), np.roll(np.arange(nv), 2)], 1)
+    lines = [f"{nv} {nv} 25 2"]
+    for v, pr in zip(verts, pairs):
+        lines.append(" ".join(f"{x:f}" for x in v) + " " + " ".join(f"{j} {w}" for j, w in pr))
+    lines += [f"{a} {b} {c}" for a, b, c in faces]
+    for jid in range(1, 26):
+        ax = rng.normal(size=3)
+        ax /= np.linalg.norm(ax)
+        q = rng.normal(0.0, 300.0, 3)
+        lines.append(f"{jid} {ax[0]} {ax[1]} {ax[2]} {q[0]} {q[1]} {q[2]} {_HS_PARENTS[jid]}")
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, "model.dat"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    q, _ = np.linalg.qr(rng.normal(size=(3 * nv, 3)))
+    scipy.io.savemat(os.path.join(directory, "evectors.mat"), {"evectors": q.T})
+    scipy.io.savemat(os.path.join(directory, "evalues.mat"), {"evalues": [[900.0, 400.0, 100.0]]})
+
+
+def test_mpii_round_trip_keeps_humanshape_ids(tmp_path):
+    """Regression: the writer renumbered joints as model index + 1, so a humanshape model read
+    back with its joints relabelled (e.g. thorax_z as l_hip_x)."""
+
+    def dense(idx, w, n):
+        d = np.zeros((idx.shape[0], n))
+        np.add.at(d, (np.arange(idx.shape[0])[:, None], np.asarray(idx)), np.asarray(w))
+        return d
+
+    _write_synthetic_humanshape(tmp_path / "src")
+    a, rig_a = load_mpii_humanshape(tmp_path / "src", return_rig=True)
+    assert a.joint_names[1] == "thorax_z" and rig_a.ids[1] == 10
+    for kwargs in ({}, {"ids": rig_a.ids}):  # ids from the joint names, or given
+        out = tmp_path / f"out{len(kwargs)}"
+        write_mpii_humanshape(out, a, axes=rig_a.axes, **kwargs)
+        b, rig_b = load_mpii_humanshape(out, return_rig=True)
+        assert b.joint_names == a.joint_names
+        assert b.parents == a.parents
+        np.testing.assert_array_equal(rig_b.ids, rig_a.ids)
+        np.testing.assert_allclose(rig_b.axes, rig_a.axes, atol=1e-12)
+        nv = a.n_vertices
+        np.testing.assert_allclose(
+            dense(b.joint_regressor_indices, b.joint_regressor_weights, nv),
+            dense(a.joint_regressor_indices, a.joint_regressor_weights, nv),
+            atol=1e-12,
+        )
+        np.testing.assert_allclose(
+            dense(b.skin_indices, b.skin_weights, 25),
+            dense(a.skin_indices, a.skin_weights, 25),
+            atol=1e-12,
+        )
+        np.testing.assert_allclose(b.mean, a.mean, atol=1e-8)
+        np.testing.assert_allclose(b.basis, a.basis, atol=1e-12)
+        np.testing.assert_allclose(b.stddev, a.stddev, rtol=1e-12)
+    # A model of another tree that happens to have 25 joints is not given humanshape's roles.
+    chain = make_toy_model(2, n_around=6, n_rings=30, n_joints=25, seed=2)
+    write_mpii_humanshape(tmp_path / "chain", chain)
+    c = load_mpii_humanshape(tmp_path / "chain")
+    assert c.joint_names == tuple(f"joint{i}" for i in range(1, 26))
+    with pytest.raises(ValueError, match="permutation"):
+        write_mpii_humanshape(tmp_path / "bad", a, ids=np.arange(25))
+    with pytest.raises(ValueError, match="depth-first"):
+        write_mpii_humanshape(tmp_path / "bad", a, ids=np.arange(25, 0, -1))
 
 
 def test_mpii_malformed(tiny, tmp_path):

@@ -161,7 +161,7 @@ def test_reconstruction_error_held_out():
     rot = np.asarray(bp.axis_angle_to_matrix(jnp.array([0.0, 0.2, 0.4])))
     moved = inside @ rot.T + np.array([0.3, 0.0, -0.1])
     outside = inside + 0.01 * rng.normal(size=inside.shape)
-    e = reconstruction_error(model, np.stack([moved, outside]), [0, 2, 4])
+    e = reconstruction_error(model, np.stack([moved, outside]), [0, 2, 4]) / 1e3  # mm -> m
     assert e.shape == (2, 3)
     assert e[0, 2] < 1e-9 and e[0, 0] > 1e-3  # in the span: exact with all components
     assert np.all(np.diff(e[0]) <= 1e-12) and e[1, 2] > 5e-3  # noise off the span remains

@@ -37,6 +37,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._validate import check_array, is_tracer
 from ._grid import nearest_within
+from ._scan import _empty_scan_message
 
 __all__ = [
     "THRESHOLDS_20MM",
@@ -91,12 +92,10 @@ def _scan_arrays(scan, name: str = "scan", batched: bool = False):
             f"`{name}.point_mask` must have shape {tuple(np.shape(scan.points))[:-1]}, got "
             f"{tuple(mask.shape)}."
         )
-    if dims["P"] < 1:
-        raise ValueError(
-            f"`{name}` must hold at least one point, got shape {np.shape(scan.points)}."
-        )
+    if 0 in tuple(np.shape(scan.points)):
+        raise ValueError(_empty_scan_message(name, np.shape(scan.points)))
     if not is_tracer(mask) and not batched and not bool(np.any(np.asarray(mask))):
-        raise ValueError(f"`{name}` has no real points (`point_mask` is all False).")
+        raise ValueError(_empty_scan_message(name, np.shape(scan.points), masked=True))
     return jnp.asarray(scan.points), jnp.asarray(scan.normals), jnp.asarray(mask, dtype=bool)
 
 

@@ -734,7 +734,7 @@ def _nrd_batch_jit(init, prep, lm_v, lm_use, scan_arrays, cfg):
 
 def _scan_arrays(scan, batched: bool):
     """Validated `(points, normals, point_mask, landmarks, landmark_mask)` of a `Scan`."""
-    check_scan(scan, min_points=1)
+    check_scan(scan, min_points=1, name="scans" if batched else "scan")
     want = 3 if batched else 2
     if scan.points.ndim != want:
         kind = "a batch of scans (leading axis B)" if batched else "one scan (no batch axis)"

@@ -706,6 +706,19 @@ def simulate_scans(
 # --------------------------------------------------------------------------------------------------
 
 
+def _empty_scan_message(name: str, shape, min_points: int = 1, masked: bool = False) -> str:
+    """The error for a scan without points (shared by every entry point that takes scans)."""
+    got = (
+        "every point has `point_mask` False"
+        if masked
+        else f"`{name}.points` has shape {tuple(int(d) for d in shape)}"
+    )
+    return (
+        f"`{name}` is empty: no real points ({got}); expected a point cloud `points` of shape "
+        f"(P, 3), metres, with at least {min_points} point(s) whose `point_mask` is True."
+    )
+
+
 def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan:
     """Validates a (possibly batched) [`bodyprior.registration.Scan`][] on the host; returns it unchanged.
 
@@ -718,6 +731,8 @@ def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan
     """
     if not isinstance(scan, Scan):
         raise ValueError(f"`{name}` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
+    if 0 in tuple(scan.points.shape):  # no points, or an empty batch (static shapes)
+        raise ValueError(_empty_scan_message(name, scan.points.shape, max(min_points, 1)))
     if is_tracer(scan.points):
         return scan
     pts = np.asarray(scan.points, dtype=np.float64)
@@ -732,7 +747,7 @@ def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan
     msk2 = msk.reshape(pts2.shape[:2])
     counts = msk2.sum(axis=1)
     if counts.min() == 0:
-        raise ValueError(f"`{name}.points` is empty (no point with point_mask True).")
+        raise ValueError(_empty_scan_message(name, pts.shape, max(min_points, 1), masked=True))
     if counts.min() < min_points:
         raise ValueError(
             f"`{name}.points` has too few points: {int(counts.min())} < min_points = {min_points}."

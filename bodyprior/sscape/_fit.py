@@ -690,7 +690,7 @@ def _check_scan_fields(scan: Scan, batched: bool):
     check_array(scan.point_mask, "scan.point_mask", (*lead, "P"), dims=dims, finite=False)
     check_array(scan.landmarks, "scan.landmarks", (*lead, "L", 3), dims=dims, finite=False)
     check_array(scan.landmark_mask, "scan.landmark_mask", (*lead, "L"), dims=dims, finite=False)
-    check_scan(scan, min_points=1)
+    check_scan(scan, min_points=1, name="scans" if batched else "scan")
     return dims
 
 

@@ -267,44 +267,53 @@ class Compactness(NamedTuple):
     """Compactness curve; entry `M - 1` describes the first `M` components."""
 
     ratio: Array
-    """Cumulative explained-variance ratio `sum_{k<=M} lambda_k / sum_k lambda_k`, shape `(K,)`."""
-    variance: Array
-    """Styner's `C(M) = sum_{k<=M} lambda_k` (model variances), shape `(K,)`."""
-    std_error: Array
-    """Styner's `sigma_C(M) = sqrt(2 / n) C(M)` (NaN when `n_samples` is not given), shape
+    """Cumulative explained-variance ratio `sum_{k<=M} lambda_k / sum_k lambda_k` (unitless), shape
     `(K,)`."""
+    variance: Array
+    """Styner's `C(M) = sum_{k<=M} lambda_k` (model variances `stddev**2`, in the model's length
+    unit squared: m^2 for bodyprior models), shape `(K,)`."""
+    std_error: Array
+    """Styner's `sigma_C(M) = sqrt(2 / n) C(M)` (same unit as `variance`; NaN when `n_samples` is
+    not given), shape `(K,)`."""
 
 
 class Generalization(NamedTuple):
-    """Leave-one-out generalization error per number of components."""
+    """Leave-one-out generalization error per number of components; errors in **millimetres**."""
 
     n_components: tuple[int, ...]
     mean: Array
-    """`G(M)`: mean over left-out meshes of the mean vertex error, shape `(len(n_components),)`."""
+    """`G(M)`: mean over left-out meshes of the mean vertex error, mm, shape
+    `(len(n_components),)`."""
     std: Array
-    """Standard deviation over left-out meshes."""
+    """Standard deviation over left-out meshes, mm."""
     std_error: Array
-    """Styner's `sigma_G = std / sqrt(N - 1)`."""
+    """Styner's `sigma_G = std / sqrt(N - 1)`, mm."""
     errors: Array
-    """Per left-out mesh errors, shape `(N, len(n_components))`."""
+    """Per left-out mesh errors, mm, shape `(N, len(n_components))`."""
 
 
 class Specificity(NamedTuple):
-    """Specificity per number of components."""
+    """Specificity per number of components; distances in **millimetres**."""
 
     n_components: tuple[int, ...]
     mean: Array
-    """`S(M)`: mean over samples of the mean vertex distance to the nearest training mesh."""
+    """`S(M)`: mean over samples of the mean vertex distance to the nearest training mesh, mm."""
     variance: Array
-    """Variance over samples (humanshape's mex returns this first, then the mean; named here)."""
+    """Variance over samples, mm^2 (humanshape's mex returns this first, then the mean; named
+    here)."""
     std_error: Array
-    """Styner's `sigma_S = std / sqrt(S - 1)`."""
+    """Styner's `sigma_S = std / sqrt(S - 1)`, mm."""
     distances: Array
-    """Per-sample nearest-neighbour distances, shape `(n_samples, len(n_components))`."""
+    """Per-sample nearest-neighbour distances, mm, shape `(n_samples, len(n_components))`."""
+
+
+M_TO_MM = 1000.0
+"""Millimetres per metre: the quality measures report errors in mm for meshes in metres."""
 
 
 def mean_vertex_distance(a: Float[Array, "V 3"], b: Float[Array, "V 3"]) -> Float[Array, ""]:
-    """`D(a, b) = (1/V) sum_v ||a_v - b_v||_2`, the distance used by all quality measures."""
+    """`D(a, b) = (1/V) sum_v ||a_v - b_v||_2`, the distance used by all quality measures, in the
+    meshes' unit (the measures below convert metres to mm)."""
     return jnp.mean(jnp.linalg.norm(a - b, axis=-1))
 
 
@@ -313,7 +322,8 @@ def compactness(model: SScapeModel, n_samples: int | None = None) -> Compactness
 
     humanshape's code returns `ratio(M) * sqrt(2/n)`, Styner's standard-error factor misapplied;
     this returns the cumulative explained-variance ratio (what should be plotted) and Styner's
-    `C(M)` with `sigma_C` separately. Model variances are `stddev**2`.
+    `C(M)` with `sigma_C` separately. Model variances are `stddev**2`, in the model's length unit
+    squared (m^2 for bodyprior models); the ratio is unitless.
 
     **Arguments:**
 
@@ -394,7 +404,8 @@ def generalization(
 
     For each left-out mesh `x_j` and each `M`: PCA on the other meshes (all `N - 1`, or a random
     subset of size `n_train` drawn with `seed`), `b = E_M^T (x_j - mu)`, `x_hat = mu + E_M b`, and
-    `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance. The meshes must
+    `g_j(M) = D(x_j, x_hat)` with `D` the mean per-vertex Euclidean distance, reported in
+    **millimetres** (meshes in metres, bodyprior's unit). The meshes must
     already be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in
     humanshape the left-out mesh is not re-aligned. PCA uses the training set's Gram matrix,
     sliced from the Gram matrix of all meshes (computed once), so each left-out mesh costs
@@ -403,14 +414,14 @@ def generalization(
 
     **Arguments:**
 
-    - `meshes`: aligned meshes `(N, V, 3)`, `N >= 2`.
+    - `meshes`: aligned meshes `(N, V, 3)`, metres, `N >= 2`.
     - `n_components`: one or several numbers of components `M`, each in `[0, T - 1]` where `T` is
       the training-set size.
     - `n_train`: optional training subset size (`<= N - 1`).
     - `seed`: NumPy seed for the subsets.
     - `chunk_size`: left-out meshes per vmapped batch.
 
-    **Returns:** a [`bodyprior.sscape.Generalization`][].
+    **Returns:** a [`bodyprior.sscape.Generalization`][], errors in mm.
     """
     dims: dict[str, int] = {}
     check_array(meshes, "meshes", ("N", "V", 3), dims=dims)
@@ -435,7 +446,9 @@ def generalization(
     )
     mean = errors.mean(0)
     std = errors.std(0, ddof=1) if n > 1 else jnp.zeros_like(mean)
-    return Generalization(ms, mean, std, std / np.sqrt(max(n - 1, 1)), errors)
+    se = std / np.sqrt(max(n - 1, 1))
+    # metres -> mm last, on each statistic (so G(M) is exactly 1000 x the metre value)
+    return Generalization(ms, mean * M_TO_MM, std * M_TO_MM, se * M_TO_MM, errors * M_TO_MM)
 
 
 @eqx.filter_jit
@@ -481,18 +494,19 @@ def specificity(
     first `M` coefficients only, and `s_i(M) = min_j D(y_i, x_j)` over all training meshes. For a
     model learned from `meshes` this equals `b_k ~ N(0, lambda_k)` with `lambda_k` the `1/n`
     variances. The paper uses 10,000 samples. Jitted; samples and meshes are processed
-    `chunk_size` at a time.
+    `chunk_size` at a time. Distances are reported in **millimetres** (model and meshes in
+    metres, bodyprior's unit).
 
     **Arguments:**
 
     - `model`: the shape space (usually learned from `meshes`).
-    - `meshes`: the aligned training meshes `(N, V, 3)`, in the model's frame.
+    - `meshes`: the aligned training meshes `(N, V, 3)`, metres, in the model's frame.
     - `n_components`: one or several `M` in `[0, model.n_components]`.
     - `key`: JAX PRNG key for the samples.
     - `n_samples`: number of samples `S`.
     - `chunk_size`: batch size for the chunked loops.
 
-    **Returns:** a [`bodyprior.sscape.Specificity`][].
+    **Returns:** a [`bodyprior.sscape.Specificity`][], distances in mm.
     """
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
@@ -509,7 +523,9 @@ def specificity(
     dist = _specificity_kernel(model.mean, basis, coeffs, x, z, ms, max(1, int(chunk_size)))
     mean = dist.mean(0)
     var = dist.var(0)
-    return Specificity(ms, mean, var, jnp.sqrt(dist.var(0, ddof=1)) / np.sqrt(s - 1), dist)
+    se = jnp.sqrt(dist.var(0, ddof=1)) / np.sqrt(s - 1)
+    # metres -> mm last, on each statistic (so S(M) is exactly 1000 x the metre value)
+    return Specificity(ms, mean * M_TO_MM, var * M_TO_MM**2, se * M_TO_MM, dist * M_TO_MM)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -534,7 +550,8 @@ def reconstruction_error(
 ) -> np.ndarray:
     """Generalization to held-out meshes: each mesh is rigidly aligned to the model's mean
     (Kabsch, no scale) and projected onto the first `M` components; the error is the mean
-    per-vertex distance `D(x, x_hat)` of [`bodyprior.sscape.generalization`][], in metres.
+    per-vertex distance `D(x, x_hat)` of [`bodyprior.sscape.generalization`][], in
+    **millimetres** (meshes in metres).
 
     Unlike the leave-one-out `generalization`, the space is learned once and the meshes are not in
     its training set (e.g. ground-truth bodies of test scans).
@@ -546,7 +563,7 @@ def reconstruction_error(
     - `n_components`: one or several `M` in `[0, model.n_components]`.
     - `align`: rigidly align each mesh to the model mean first.
 
-    **Returns:** NumPy `(N, len(n_components))` errors, metres.
+    **Returns:** NumPy `(N, len(n_components))` errors, mm.
     """
     dims: dict[str, int] = {}
     check_array(meshes, "meshes", ("N", model.n_vertices, 3), dims=dims)
@@ -559,4 +576,4 @@ def reconstruction_error(
     if align:
         x, _ = procrustes_align(x, reference=model.mean)
     m_max = max(ms)
-    return np.asarray(_reconstruction_kernel(model.mean, model.basis[:m_max], x, ms))
+    return np.asarray(_reconstruction_kernel(model.mean, model.basis[:m_max], x, ms)) * M_TO_MM

@@ -41,6 +41,19 @@ _HS25_NAMES = {
     19: "r_shoulder_2", 20: "r_shoulder_3", 21: "r_elbow", 22: "r_wrist", 23: "r_hip_z",
     24: "l_hip_z", 25: "thorax_y",
 }  # fmt: skip
+_HS25_IDS = {name: jid for jid, name in _HS25_NAMES.items()}
+# Parent id of each joint id of the released rig (0 = none): the tree those names describe.
+_HS25_PARENTS = {
+    1: 0, 24: 1, 2: 24, 3: 2, 4: 3, 5: 4, 23: 1, 6: 23, 7: 6, 8: 7, 9: 8, 10: 1, 25: 10, 11: 25,
+    12: 11, 13: 11, 14: 13, 15: 14, 16: 15, 17: 16, 18: 11, 19: 18, 20: 19, 21: 20, 22: 21,
+}  # fmt: skip
+
+
+def _is_hs25_tree(parent_ids: np.ndarray) -> bool:
+    """Whether 1-based `parent_ids` (indexed by id - 1) are the released 25-joint rig's tree."""
+    return parent_ids.shape[0] == 25 and all(
+        int(parent_ids[jid - 1]) == p for jid, p in _HS25_PARENTS.items()
+    )
 
 
 class HumanShapeRig(NamedTuple):
@@ -272,8 +285,9 @@ def load_mpii_humanshape(
       `explained_variance` is relative to the sum of all `evalues` in the file.
     - Joints: one model joint per humanshape joint id (25 for the released rig), ordered
       depth-first from the root (children by ascending id); `joint_names` are the joint roles for
-      the released 25-joint rig (`"root"`, `"l_hip_z"`, ...) and `"joint<id>"` otherwise; the ids
-      are in the returned rig. Joint positions are recomputed from the surface as humanshape does
+      the released 25-joint rig (`"root"`, `"l_hip_z"`, ...; used when the file's joint tree is
+      that rig's) and `"joint<id>"` otherwise; the ids are in the returned rig. Joint positions
+      are recomputed from the surface as humanshape does
       ([`bodyprior.sscape.joint_regressor_from_weights`][]); those stored in the file are ignored.
     - Skin weights: the `NS` influence pairs are accumulated per joint and stored top-k sparse.
 
@@ -354,7 +368,8 @@ def load_mpii_humanshape(
         -1 if dat["parent_ids"][jid - 1] == 0 else index_of[int(dat["parent_ids"][jid - 1])]
         for jid in order
     )
-    names = tuple(_HS25_NAMES[jid] if nj == 25 else f"joint{jid}" for jid in order)
+    hs25 = _is_hs25_tree(dat["parent_ids"])
+    names = tuple(_HS25_NAMES[jid] if hs25 else f"joint{jid}" for jid in order)
 
     dense_w = np.zeros((nv, nj))
     np.add.at(
@@ -424,29 +439,54 @@ def humanshape_pose(rig: HumanShapeRig, pose_vector) -> tuple[jnp.ndarray, Simil
     return pose, transform
 
 
+def _default_ids(names: tuple[str, ...]) -> np.ndarray:
+    """humanshape ids implied by joint names: the released rig's roles, `"joint<id>"`, else
+    model index + 1."""
+    nj = len(names)
+    if nj == 25 and set(names) == set(_HS25_IDS):
+        return np.asarray([_HS25_IDS[n] for n in names])
+    if all(n.startswith("joint") and n[5:].isdigit() for n in names):
+        ids = [int(n[5:]) for n in names]
+        if sorted(ids) == list(range(1, nj + 1)):
+            return np.asarray(ids)
+    return np.arange(1, nj + 1)
+
+
 def write_mpii_humanshape(
     directory: str | os.PathLike,
     model: SScapeModel,
     *,
     axes=None,
+    ids=None,
     unit_scale: float = MM_TO_M,
 ) -> None:
     """Writes `model` as a humanshape model directory (`model.dat`, `evectors.mat`, `evalues.mat`,
     `meanShape.mat`, MATLAB v5), the format read by [`bodyprior.sscape.load_mpii_humanshape`][].
 
-    Joint ids are model index + 1 (the model's joint order, which must list parents before children
-    to be read back in the same order); the `NS` influence pairs are the model's sparse skin weights
-    (zero-weight slots written as humanshape's `1 0` padding). Written joint positions are the
-    mean's rest joints (humanshape ignores them). The model's joint regressor is **not** stored:
-    humanshape recomputes joints from skin-weight overlaps, so a reloaded model has that regressor.
-    `evalues` are `(stddev / unit_scale)**2`. Hinge `axes` `(J, 3)` default to zeros.
+    Joint `j` is written with the humanshape id `ids[j]`. By default the ids follow the joint
+    names, so that a model read by `load_mpii_humanshape` reads back with the same ids, names and
+    joint order: the released rig's roles (`"root"`, `"l_hip_z"`, ...; all 25) map to their
+    humanshape ids, names `"joint<id>"` to `id`, and any other naming to model index + 1 (the
+    reader then names joints `"joint<id>"`, or by role if the tree is the released rig's). The
+    reader orders joints depth-first from the root (children by ascending id), so the model's
+    joint order must be that order of the written ids. The `NS` influence pairs are the model's
+    sparse skin weights (zero-weight slots written as humanshape's `1 0` padding; weights written
+    to full precision). Written joint positions are the mean's rest joints (humanshape ignores
+    them). The model's joint regressor is **not** stored: humanshape recomputes joints from
+    skin-weight overlaps, so a reloaded model has that regressor. `evalues` are
+    `(stddev / unit_scale)**2`.
 
     **Arguments:**
 
     - `directory`: output folder (created if missing).
     - `model`: the model to export.
-    - `axes`: optional joint axes `(J, 3)`.
+    - `axes`: optional hinge axes `(J, 3)` (e.g. `rig.axes` of a loaded model); default zeros.
+    - `ids`: optional humanshape 1-based joint ids `(J,)`, a permutation of `1..J` (e.g.
+      `rig.ids` of a loaded model); default from the joint names, as above.
     - `unit_scale`: metres per file unit (default 1e-3: files in mm).
+
+    **Raises:** `ValueError` for a wrong `model`, `axes` or `ids`, or a joint order that would not
+    read back unchanged.
     """
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
@@ -456,9 +496,27 @@ def write_mpii_humanshape(
         if axes is None
         else np.asarray(check_array(axes, "axes", (nj, 3)), np.float64)
     )
+    if ids is None:
+        ids = _default_ids(tuple(model.joint_names))
+    else:
+        ids = np.asarray(check_array(ids, "ids", (nj,), integer=True)).astype(np.int64)
+        if sorted(ids.tolist()) != list(range(1, nj + 1)):
+            raise ValueError(
+                f"`ids` must be a permutation of 1..{nj} (humanshape's 1-based joint ids), got "
+                f"{ids.tolist()}."
+            )
     if any(p >= j for j, p in enumerate(model.parents) if j > 0):
         raise ValueError(
             "`model.parents` must list parents before children to be written as model.dat."
+        )
+    parent_ids = np.zeros(nj, np.int64)  # indexed by id - 1, as in model.dat
+    for j, p in enumerate(model.parents):
+        parent_ids[ids[j] - 1] = 0 if p < 0 else ids[p]
+    if _joint_order(parent_ids) != ids.tolist():
+        raise ValueError(
+            "The model's joint order is not the depth-first order (children by ascending id) of "
+            f"its humanshape ids {ids.tolist()}, so it would not read back in the same order; "
+            "pass `ids` that number the joints in that order."
         )
     directory = os.fspath(directory)
     os.makedirs(directory, exist_ok=True)
@@ -467,20 +525,22 @@ def write_mpii_humanshape(
     k = basis.shape[0]
     skin_idx = np.asarray(model.skin_indices)
     skin_w = np.asarray(model.skin_weights, np.float64)
-    ids = np.where(skin_w > 0, skin_idx + 1, 1)
+    skin_ids = np.where(skin_w > 0, ids[skin_idx], 1)
     skin_w = np.where(skin_w > 0, skin_w, 0.0)
     joints = np.asarray(model.rest_joints(model.mean), np.float64) / unit_scale
     faces = np.asarray(model.faces)
     lines = [f"{nv} {faces.shape[0]} {nj} {skin_idx.shape[1]}"]
     for v in range(nv):
-        pairs = " ".join(f"{ids[v, i]} {skin_w[v, i]:.9g}" for i in range(skin_idx.shape[1]))
+        pairs = " ".join(
+            f"{skin_ids[v, i]} {float(skin_w[v, i])!r}" for i in range(skin_idx.shape[1])
+        )
         lines.append(f"{mean[v, 0]:f} {mean[v, 1]:f} {mean[v, 2]:f} {pairs}")
     lines += [f"{a} {b} {c}" for a, b, c in faces]
-    for j in range(nj):
+    for j in np.argsort(ids):
         a, q = axes[j], joints[j]
         lines.append(
-            f"{j + 1} {a[0]:.9g} {a[1]:.9g} {a[2]:.9g} {q[0]:f} {q[1]:f} {q[2]:f} "
-            f"{model.parents[j] + 1}"
+            f"{ids[j]} {float(a[0])!r} {float(a[1])!r} {float(a[2])!r} "
+            f"{q[0]:f} {q[1]:f} {q[2]:f} {parent_ids[ids[j] - 1]}"
         )
     with open(os.path.join(directory, "model.dat"), "w") as f:
         f.write("\n".join(lines) + "\n")
