@@ -54,7 +54,15 @@ The CMU hand segment belongs to the zero-offset joint `LeftFingerBase` (CMU's `l
 `LeftHand` is CMU's `lwrist`), so its world rotation, which includes `LeftHand`'s, drives the rig
 hand. Dropped (no data): CMU `LeftHandIndex1`, `LThumb`; Daz fingers, thumbs and eyes. The
 3ds-Max-named CMU files are renamed to MotionBuilder names first (`_MAX_TO_MB`, from
-shared/data/mocap/SOURCES.md).
+shared/data/mocap/SOURCES.md); files of the 2008 MotionBuilder release (e.g. CMU 01_01), which
+call the finger joints `LFingers`/`RFingers`, are kind `cmu_mb2008` (`_MB2008_TO_MB`). Errors about
+a missing joint name it as in the user's file.
+
+**Public API.** [`bodyprior.Retargeter`][] (built once per BVH skeleton and body, applied to any
+frames), [`bodyprior.retarget`][] (one call: axis-angle rig poses plus optional root orientation and
+root translation in metres), [`bodyprior.poses_to_bvh`][] (export rig poses as a BVH of the rig,
+kind `"rig"`, which retargets back onto the same body unchanged), [`bodyprior.load_mocap`][] (DSPP
+pose sets).
 
 **Frames.** Dropped at the start of a clip: frame 0 of MotionBuilder-named CMU files (a synthetic
 T-pose added by the conversion); frames 0-7 of Daz-friendly files (the fixed rest pose and a 7-frame
