@@ -65,11 +65,15 @@ from ._metrics import (
 from ._mocap import (
     EULER_ORDER as EULER_ORDER,
     POSE_JOINTS as POSE_JOINTS,
+    SKELETON_KINDS as SKELETON_KINDS,
     PoseSet as PoseSet,
+    Retargeter as Retargeter,
     find_mocap_dir as find_mocap_dir,
     load_mocap as load_mocap,
     pose_euler as pose_euler,
+    poses_to_bvh as poses_to_bvh,
     render_poses as render_poses,
+    retarget as retarget,
     rig_pose as rig_pose,
     split_by_clip as split_by_clip,
 )

@@ -54,7 +54,15 @@ The CMU hand segment belongs to the zero-offset joint `LeftFingerBase` (CMU's `l
 `LeftHand` is CMU's `lwrist`), so its world rotation, which includes `LeftHand`'s, drives the rig
 hand. Dropped (no data): CMU `LeftHandIndex1`, `LThumb`; Daz fingers, thumbs and eyes. The
 3ds-Max-named CMU files are renamed to MotionBuilder names first (`_MAX_TO_MB`, from
-shared/data/mocap/SOURCES.md).
+shared/data/mocap/SOURCES.md); files of the 2008 MotionBuilder release (e.g. CMU 01_01), which
+call the finger joints `LFingers`/`RFingers`, are kind `cmu_mb2008` (`_MB2008_TO_MB`). Errors about
+a missing joint name it as in the user's file.
+
+**Public API.** [`bodyprior.Retargeter`][] (built once per BVH skeleton and body, applied to any
+frames), [`bodyprior.retarget`][] (one call: axis-angle rig poses plus optional root orientation and
+root translation in metres), [`bodyprior.poses_to_bvh`][] (export rig poses as a BVH of the rig,
+kind `"rig"`, which retargets back onto the same body unchanged), [`bodyprior.load_mocap`][] (DSPP
+pose sets).
 
 **Frames.** Dropped at the start of a clip: frame 0 of MotionBuilder-named CMU files (a synthetic
 T-pose added by the conversion); frames 0-7 of Daz-friendly files (the fixed rest pose and a 7-frame
@@ -86,7 +94,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._body import DefaultBody, evaluate, load_default_body, phenotype_vector, rest_shape
-from ._bvh import Bvh, read_bvh
+from ._bvh import Bvh, read_bvh, write_bvh
 from ._render import contact_sheet, save_png
 from ._rotations import (
     axis_angle_to_matrix,
@@ -99,11 +107,15 @@ from ._validate import check_array, is_tracer
 __all__ = [
     "EULER_ORDER",
     "POSE_JOINTS",
+    "SKELETON_KINDS",
     "PoseSet",
+    "Retargeter",
     "find_mocap_dir",
     "load_mocap",
     "pose_euler",
+    "poses_to_bvh",
     "render_poses",
+    "retarget",
     "rig_pose",
     "split_by_clip",
 ]
@@ -198,18 +210,59 @@ def _mirror(table: dict) -> dict:
     return out
 
 
+def _self_map(table: dict) -> dict:
+    """The joint map of a BVH written from the rig itself ([`bodyprior.poses_to_bvh`][]): each rig
+    bone is driven by its own joint, with the same end point (so every rest compensation is I)."""
+    out = {}
+    for rig, (_, end, rig_end) in table.items():
+        if end is None:
+            out[rig] = (rig, None, None)
+        else:
+            kind, bone = rig_end
+            out[rig] = (rig, bone if kind == "head" else f"{bone}/end", rig_end)
+    return out
+
+
 _MAPS = {
     "cmu": {**_CENTER_CMU, **_LEFT_CMU, **_mirror(_LEFT_CMU)},
     "daz": {**_CENTER_DAZ, **_LEFT_DAZ, **_mirror(_LEFT_DAZ)},
 }
-# joints whose presence identifies each skeleton kind
+_MAPS["rig"] = _self_map(_MAPS["cmu"])
+
+# The 2008 MotionBuilder-friendly CMU release (e.g. CMU 01_01) names the finger joints of the 2010
+# release's hierarchy LFingers/RFingers (shared/data/mocap/SOURCES.md, A)
+_MB2008_TO_MB = {"LFingers": "LeftHandIndex1", "RFingers": "RightHandIndex1"}
+
+#: The BVH skeleton kinds that [`bodyprior.retarget`][] and [`bodyprior.load_mocap`][] read, by the
+#: name [`bodyprior.Retargeter`][] gives them.
+SKELETON_KINDS: dict[str, str] = {
+    "rig": "bodyprior cmu_mb rig (written by bodyprior.poses_to_bvh)",
+    "cmu_mb2008": "CMU MotionBuilder-friendly, 2008 names (LFingers/RFingers)",
+    "cmu_mb": "CMU MotionBuilder-friendly",
+    "cmu_3dsmax": "CMU 3ds-Max-friendly",
+    "daz": "CMU Daz-friendly",
+}
+# joints whose presence identifies each skeleton kind, checked in this order
 _KIND_SIGNATURE = {
+    "rig": ("Hips", "LHipJoint", "LeftUpLeg", "LowerBack", "Spine1", "Neck1", "LeftFingerBase",
+            "LeftHandFinger1", "RightHandFinger1"),
+    "cmu_mb2008": ("Hips", "LHipJoint", "LeftUpLeg", "LowerBack", "Spine1", "Neck1",
+                   "LeftFingerBase", "LFingers"),
     "cmu_mb": ("Hips", "LHipJoint", "LeftUpLeg", "LowerBack", "Spine1", "Neck1", "LeftFingerBase"),
     "cmu_3dsmax": ("Hips", "LHipJoint", "LeftHip", "lowerback", "Chest2", "lowerneck", "lhand"),
     "daz": ("hip", "abdomen", "chest", "lButtock", "lThigh", "lCollar", "lMid1", "rMid1"),
+}  # fmt: skip
+# CMU ASF length unit in metres: (1/0.45) * 2.54 / 100 (shared/data/mocap/SOURCES.md, A)
+_CMU_UNIT = (1.0 / 0.45) * 2.54 / 100.0
+# kind -> (joint map, index of the first motion frame, renaming of the file's joints to the map's
+# names, metres per BVH length unit)
+_KIND_INFO = {
+    "rig": ("rig", 0, {}, 0.01),
+    "cmu_mb2008": ("cmu", 1, _MB2008_TO_MB, _CMU_UNIT),
+    "cmu_mb": ("cmu", 1, {}, _CMU_UNIT),
+    "cmu_3dsmax": ("cmu", 0, _MAX_TO_MB, _CMU_UNIT),
+    "daz": ("daz", 8, {}, 0.01),
 }
-# kind -> (joint map, index of the first motion frame)
-_KIND_INFO = {"cmu_mb": ("cmu", 1), "cmu_3dsmax": ("cmu", 0), "daz": ("daz", 8)}
 
 # largest plausible local rotation angle (degrees) per pose bone; larger ones are data glitches
 _MAX_LOCAL_DEG = {"Head": 100.0, "Neck": 100.0, "Neck1": 100.0,
@@ -270,7 +323,6 @@ class PoseSet(eqx.Module):
 # rig pose <-> Euler
 
 
-@functools.lru_cache(maxsize=8)
 def _pose_index(joint_names: tuple[str, ...]) -> np.ndarray:
     missing = [n for n in POSE_JOINTS if n not in joint_names]
     if missing:
@@ -327,7 +379,11 @@ def pose_euler(body: DefaultBody, pose: Float[Array, "J 3"]) -> Float[Array, "20
 
 
 def skeleton_kind(bvh: Bvh) -> str:
-    """`"cmu_mb"`, `"cmu_3dsmax"` or `"daz"` from the joint names (`ValueError` otherwise)."""
+    """The skeleton kind of `bvh` from its joint names: a key of `SKELETON_KINDS`.
+
+    `"rig"` (a file written by [`bodyprior.poses_to_bvh`][] from the `cmu_mb` rig),
+    `"cmu_mb2008"`, `"cmu_mb"`, `"cmu_3dsmax"` or `"daz"`; `ValueError` for any other skeleton.
+    """
     names = set(bvh.joint_names)
     for kind, sig in _KIND_SIGNATURE.items():
         if all(n in names for n in sig):
@@ -367,26 +423,8 @@ def _swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 _aa_to_matrix = jax.jit(axis_angle_to_matrix)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Retarget:
-    """Precomputed retargeting of one BVH skeleton (joint names, offsets) onto the rig."""
-
-    rig_index: tuple[int, ...]  # rig bone per pose joint
-    driver: tuple[int, ...]  # mocap joint per pose joint, -1 = none
-    anchor: tuple[int, ...]  # pose-joint index of the anchor `a`, -1 = root
-    root_driver: int
-    C: np.ndarray  # (20, 3, 3) rest compensation, bodyprior axes
-    C_root: np.ndarray
-
-
-_RIG_REST_CACHE: dict[int, tuple] = {}
-
-
 def _rig_rest(body: DefaultBody) -> tuple[np.ndarray, np.ndarray]:
-    """Rest heads and tails of the default body (default phenotypes), float64, metres (cached)."""
-    hit = _RIG_REST_CACHE.get(id(body))
-    if hit is not None and hit[0] is body:
-        return hit[1], hit[2]
+    """Rest heads and tails of the default body (default phenotypes), float64, metres, `(J, 3)`."""
     with jax.enable_x64(True):
         _, heads = rest_shape(body, phenotype_vector())
         heads = np.asarray(heads, np.float64)
@@ -394,27 +432,242 @@ def _rig_rest(body: DefaultBody) -> tuple[np.ndarray, np.ndarray]:
         tails = np.asarray(body.rig.tail_template, np.float64) + (
             heads - np.asarray(body.rig.head_template, np.float64)
         )
-    if len(_RIG_REST_CACHE) >= 4:
-        _RIG_REST_CACHE.clear()
-    _RIG_REST_CACHE[id(body)] = (body, heads, tails)
     return heads, tails
 
 
-def _build_retarget(bvh: Bvh, table: Mapping, body: DefaultBody) -> _Retarget:
+def _check_bvh(bvh) -> None:
+    if not isinstance(bvh, Bvh):
+        raise ValueError(f"`bvh` must be a bodyprior.Bvh, got {type(bvh).__name__}.")
+
+
+def _frame_index(frames, n_frames: int) -> np.ndarray:
+    """`frames` (None, slice, 1-D int indices in [-F, F), or an (F,) bool mask) -> int64 indices."""
+    if frames is None:
+        return np.arange(n_frames)
+    if isinstance(frames, slice):
+        return np.arange(n_frames)[frames]
+    if is_tracer(frames):
+        raise ValueError("`frames` must be concrete indices (host data), got a tracer.")
+    idx = np.asarray(frames)
+    if idx.dtype == np.bool_:
+        if idx.shape != (n_frames,):
+            raise ValueError(
+                f"`frames`: a boolean mask must have shape ({n_frames},) (one entry per frame of "
+                f"`bvh`), got shape {idx.shape}."
+            )
+        return np.flatnonzero(idx)
+    if idx.size == 0 and idx.ndim == 1:
+        return np.zeros(0, np.int64)
+    if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(
+            "`frames` must be None, a slice, a 1-D array of integer frame indices or a boolean "
+            f"mask, got shape {idx.shape} and dtype {idx.dtype}."
+        )
+    idx = idx.astype(np.int64)
+    bad = (idx < -n_frames) | (idx >= n_frames)
+    if bad.any():
+        raise ValueError(
+            f"`frames` must index the {n_frames} frames of `bvh` (in [-{n_frames}, {n_frames})), "
+            f"got {int(idx[bad][0])}."
+        )
+    return np.where(idx < 0, idx + n_frames, idx)
+
+
+class Retargeter(eqx.Module):
+    """The retargeting of one BVH skeleton onto a body's `cmu_mb` rig, precomputed on the host.
+
+    Build it once per (BVH skeleton, body) with [`bodyprior.Retargeter.from_bvh`][] and apply it to
+    any frames of any [`bodyprior.Bvh`][] with that skeleton (same joint names and offsets, e.g.
+    every clip of one CMU subject, or every Daz-friendly clip); the method is in the module
+    docstring. [`bodyprior.retarget`][] does both in one call. Host NumPy, float64.
+
+    **Fields:**
+
+    - `C`: shape `(20, 3, 3)`, the rest-compensation rotation of each pose bone
+      ([`bodyprior.POSE_JOINTS`][] order), bodyprior axes.
+    - `C_root`: shape `(3, 3)`, the root's rest compensation (the identity).
+    - `rig_heads`: shape `(J, 3)`, metres, the rig's rest joints (default phenotypes), world frame.
+    - `bvh_offsets`: shape `(Jb, 3)`, the BVH skeleton's `OFFSET`s (file units and axes), to check
+      that a `Bvh` it is applied to has this skeleton.
+    - `kind`: static, the skeleton kind (a key of `SKELETON_KINDS`).
+    - `bvh_joint_names`: static, the BVH skeleton's joint names, as in its file.
+    - `rig_joint_names`: static, the body's rig bones (`body.joint_names`).
+    - `rig_index`, `driver`, `anchor`, `root_driver`: static joint map: the rig bone of each pose
+      bone, its driving BVH joint (-1: none, kept at rest), its anchor pose bone (-1: the root),
+      and the BVH joint that drives the root.
+    - `unit`: static, metres per BVH length unit (for root translations).
+    """
+
+    C: Float[np.ndarray, "20 3 3"]
+    C_root: Float[np.ndarray, "3 3"]
+    rig_heads: Float[np.ndarray, "J 3"]
+    bvh_offsets: Float[np.ndarray, "Jb 3"]
+    kind: str = eqx.field(static=True)
+    bvh_joint_names: tuple[str, ...] = eqx.field(static=True)
+    rig_joint_names: tuple[str, ...] = eqx.field(static=True)
+    rig_index: tuple[int, ...] = eqx.field(static=True)
+    driver: tuple[int, ...] = eqx.field(static=True)
+    anchor: tuple[int, ...] = eqx.field(static=True)
+    root_driver: int = eqx.field(static=True)
+    unit: float = eqx.field(static=True)
+
+    @classmethod
+    def from_bvh(cls, bvh: Bvh, body: DefaultBody, *, unit: float | None = None) -> Retargeter:
+        """Precomputes the retargeting of `bvh`'s skeleton onto `body`'s rig.
+
+        Only the skeleton of `bvh` (joint names, offsets, End Sites) is used, not its motion.
+
+        **Arguments:**
+
+        - `bvh`: a [`bodyprior.Bvh`][] of one of the kinds in `SKELETON_KINDS` (CMU with
+          MotionBuilder names of 2008 or 2010, 3ds-Max names, Daz-friendly, or a file written by
+          [`bodyprior.poses_to_bvh`][]).
+        - `body`: a [`bodyprior.DefaultBody`][] with the `cmu_mb` rig; its rest joints at the
+          default phenotypes are the target.
+        - `unit`: metres per BVH length unit, for root translations; default by kind: CMU
+          `(1 / 0.45) * 2.54 / 100 = 0.05644` (CMU ASF units), Daz-friendly and `"rig"` files
+          `0.01` (centimetres).
+
+        **Returns:** a [`bodyprior.Retargeter`][].
+
+        **Raises:** `ValueError` for an unknown skeleton, a joint of the joint map missing from
+        `bvh` (named as in the file), a body without the `cmu_mb` rig, or a bad `unit`.
+        """
+        _check_bvh(bvh)
+        _pose_index(body.joint_names)
+        heads, tails = _rig_rest(body)
+        return _build_retargeter(bvh, body, heads, tails, unit)
+
+    @property
+    def first_motion_frame(self) -> int:
+        """Index of the first frame of real motion in files of this kind (1 for CMU MotionBuilder
+        files, whose frame 0 is a synthetic T-pose; 8 for Daz-friendly files; else 0)."""
+        return _KIND_INFO[self.kind][1]
+
+    def _check_skeleton(self, bvh) -> None:
+        _check_bvh(bvh)
+        same = bvh.joint_names == self.bvh_joint_names and np.allclose(
+            bvh.offsets, self.bvh_offsets, rtol=1e-9, atol=1e-12
+        )
+        if not same:
+            raise ValueError(
+                "`bvh` must have the skeleton this Retargeter was built for (same joint names and "
+                f"offsets; built for {self.bvh_joint_names[:3]}..., got "
+                f"{bvh.joint_names[:3]}...); build another with Retargeter.from_bvh(bvh, body)."
+            )
+
+    def _rotations(self, bvh: Bvh, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(pose-bone local rotations `(F, 20, 3, 3)`, rig root world rotation `(F, 3, 3)`)."""
+        G = mocap_world_rotations(bvh, frames)
+        F = G.shape[0]
+        W = np.empty((F, len(POSE_JOINTS), 3, 3))
+        W_root = G[:, self.root_driver] @ self.C_root
+        R = np.empty_like(W)
+        for k in range(len(POSE_JOINTS)):
+            Wa = W_root if self.anchor[k] < 0 else W[:, self.anchor[k]]
+            if self.driver[k] < 0:
+                W[:, k] = Wa  # no counterpart: rigid with its parent (identity local rotation)
+                R[:, k] = np.eye(3)
+            else:
+                W[:, k] = G[:, self.driver[k]] @ self.C[k]
+                R[:, k] = np.swapaxes(Wa, -1, -2) @ W[:, k]
+        return R, W_root
+
+    def local_matrices(self, bvh: Bvh, frames=None) -> Float[np.ndarray, "F 20 3 3"]:
+        """Local rotation matrices of the 20 pose bones ([`bodyprior.POSE_JOINTS`][] order) at
+        `frames` of `bvh`, shape `(F, 20, 3, 3)`, float64, bodyprior axes (the DSPP pose; the root
+        orientation is dropped). `frames` as in [`bodyprior.Retargeter.__call__`][]."""
+        self._check_skeleton(bvh)
+        return self._rotations(bvh, _frame_index(frames, bvh.n_frames))[0]
+
+    def __call__(
+        self,
+        bvh: Bvh,
+        frames=None,
+        *,
+        keep_root_rotation: bool = False,
+        keep_root_translation: bool = False,
+    ) -> tuple[Float[np.ndarray, "F J 3"], Float[np.ndarray, "F 3"]]:
+        """Retargets frames of `bvh` onto the rig.
+
+        **Arguments:**
+
+        - `bvh`: a [`bodyprior.Bvh`][] with the skeleton this Retargeter was built for.
+        - `frames`: which frames: `None` (all), a slice, a 1-D integer array of frame indices
+          (any order, repeats allowed, negative counts from the end) or a boolean mask of shape
+          `(bvh.n_frames,)`. Frame `k` is at time `k * bvh.frame_time` seconds; note the rest frames
+          at the start of some kinds (`first_motion_frame`).
+        - `keep_root_rotation`: also pose the root (`Hips`) with the mocap's root orientation;
+          otherwise the root stays at rest (the body seen in its pelvis frame, as DSPP poses).
+        - `keep_root_translation`: return the mocap root's position; otherwise zeros.
+
+        **Returns:** `(pose, root_translation)`, NumPy float64:
+
+        - `pose`: shape `(F, J, 3)`, axis-angle local rotations (radians) in `body.joint_names`
+          order, bodyprior's kinematics convention (world-aligned axes at rest; for
+          [`bodyprior.evaluate`][]). Bones outside [`bodyprior.POSE_JOINTS`][] are zero, the root
+          too unless `keep_root_rotation`.
+        - `root_translation`: shape `(F, 3)`, metres, bodyprior's world frame (Z up, the mocap's
+          rest facing direction is -Y): `unit * position - rig_heads[0]`, where `position` is the
+          BVH root position (its `OFFSET` plus position channels) converted to bodyprior axes. So
+          `evaluate(body, phenotype_vector(), pose[k], root_translation[k])` puts the rig root
+          where the mocap root is, in the capture's absolute coordinates (the capture's floor
+          height and horizontal origin); subtract `root_translation[0]` for
+          motion relative to the first frame. The body's proportions are not taken into account
+          (a body smaller than the mocap subject floats or sinks by the difference in leg length).
+
+        **Raises:** `ValueError` if `bvh` has another skeleton, or `frames` is out of range or not
+        an index.
+        """
+        self._check_skeleton(bvh)
+        idx = _frame_index(frames, bvh.n_frames)
+        R, W_root = self._rotations(bvh, idx)
+        pose = np.zeros((len(idx), len(self.rig_joint_names), 3))
+        pose[:, list(self.rig_index)] = _from_matrices(R, "axis_angle")
+        if keep_root_rotation:
+            pose[:, 0] = _from_matrices(W_root, "axis_angle")
+        if keep_root_translation:
+            trans = self.unit * (bvh.root_positions(idx) @ _M.T) - self.rig_heads[0]
+        else:
+            trans = np.zeros((len(idx), 3))
+        return pose, trans
+
+
+def _build_retargeter(
+    bvh: Bvh, body: DefaultBody, heads: np.ndarray, tails: np.ndarray, unit: float | None
+) -> Retargeter:
+    kind = skeleton_kind(bvh)
+    table_name, _, renaming, default_unit = _KIND_INFO[kind]
+    table = _MAPS[table_name]
+    if unit is None:
+        unit = default_unit
+    elif not (isinstance(unit, (int, float, np.floating)) and np.isfinite(unit) and unit > 0):
+        raise ValueError(f"`unit` must be a positive number of metres per BVH unit, got {unit!r}.")
     names = body.joint_names
     parents = body.parents
-    heads, tails = _rig_rest(body)
+    mapped = tuple(renaming.get(n, n) for n in bvh.joint_names)  # the joint map's names
+    as_in_file = {v: k for k, v in renaming.items()}
+
+    def index(name: str, rig_bone: str) -> int:
+        try:
+            return mapped.index(name)
+        except ValueError:
+            raise ValueError(
+                f"No joint named {as_in_file.get(name, name)!r} in this BVH skeleton (a "
+                f"{SKELETON_KINDS[kind]} skeleton; rig bone {rig_bone!r} is retargeted from it)."
+            ) from None
+
     rest = bvh.rest_positions() @ _M.T  # mocap rest joint positions, bodyprior axes
     end = (np.asarray(bvh.rest_positions()) + np.nan_to_num(bvh.end_offsets)) @ _M.T
     has_end = ~np.isnan(bvh.end_offsets[:, 0])
 
-    def mocap_point(spec: str) -> np.ndarray:
+    def mocap_point(spec: str, rig_bone: str) -> np.ndarray:
         if spec.endswith("/end"):
-            j = bvh.joint_index(spec[:-4])
+            j = index(spec[:-4], rig_bone)
             if not has_end[j]:
-                raise ValueError(f"joint {spec[:-4]!r} has no End Site")
+                raise ValueError(f"joint {bvh.joint_names[j]!r} has no End Site")
             return end[j]
-        return rest[bvh.joint_index(spec)]
+        return rest[index(spec, rig_bone)]
 
     pose_set = set(POSE_JOINTS)
     C_rig = {0: np.eye(3)}  # rig bone -> C, filled in rig (parents-first) order
@@ -426,9 +679,9 @@ def _build_retarget(bvh: Bvh, table: Mapping, body: DefaultBody) -> _Retarget:
         entry = table.get(names[j])
         u = b = None
         if entry is not None and entry[1] is not None:
-            drv, mend, (kind, bone) = entry
-            u = _unit(mocap_point(mend) - rest[bvh.joint_index(drv)])
-            rig_end = (heads if kind == "head" else tails)[names.index(bone)]
+            drv, mend, (kind_end, bone) = entry
+            u = _unit(mocap_point(mend, names[j]) - rest[index(drv, names[j])])
+            rig_end = (heads if kind_end == "head" else tails)[names.index(bone)]
             b = _unit(rig_end - heads[j])
         C_rig[j] = Ca if u is None or b is None else _swing(Ca @ b, u) @ Ca
 
@@ -437,18 +690,24 @@ def _build_retarget(bvh: Bvh, table: Mapping, body: DefaultBody) -> _Retarget:
         j = names.index(n)
         rig_index.append(j)
         entry = table.get(n)
-        driver.append(-1 if entry is None else bvh.joint_index(entry[0]))
+        driver.append(-1 if entry is None else index(entry[0], n))
         a = parents[j]
         while a != 0 and names[a] not in pose_set:
             a = parents[a]
         anchor.append(-1 if a == 0 else POSE_JOINTS.index(names[a]))
-    return _Retarget(
+    return Retargeter(
+        C=np.stack([C_rig[j] for j in rig_index]),
+        C_root=C_rig[0],
+        rig_heads=np.asarray(heads, np.float64),
+        bvh_offsets=np.asarray(bvh.offsets),
+        kind=kind,
+        bvh_joint_names=bvh.joint_names,
+        rig_joint_names=names,
         rig_index=tuple(rig_index),
         driver=tuple(driver),
         anchor=tuple(anchor),
-        root_driver=bvh.joint_index(table["Hips"][0]),
-        C=np.stack([C_rig[j] for j in rig_index]),
-        C_root=C_rig[0],
+        root_driver=index(table["Hips"][0], names[0]),
+        unit=float(unit),
     )
 
 
@@ -461,41 +720,135 @@ def mocap_world_rotations(bvh: Bvh, frames=None) -> np.ndarray:
     return _M @ G @ _M.T
 
 
-def retarget_matrices(bvh: Bvh, body: DefaultBody, frames=None, *, _cache=None) -> np.ndarray:
-    """Local rotation matrices of the 20 pose bones, shape `(F, 20, 3, 3)`, for BVH frames.
+def retarget_matrices(bvh: Bvh, body: DefaultBody, frames=None) -> np.ndarray:
+    """Local rotation matrices of the 20 pose bones, shape `(F, 20, 3, 3)`, for BVH frames:
+    `Retargeter.from_bvh(bvh, body).local_matrices(bvh, frames)`."""
+    return Retargeter.from_bvh(bvh, body).local_matrices(bvh, frames)
+
+
+def retarget(
+    bvh: Bvh,
+    body: DefaultBody,
+    frames=None,
+    *,
+    keep_root_rotation: bool = False,
+    keep_root_translation: bool = False,
+    unit: float | None = None,
+) -> tuple[Float[np.ndarray, "F J 3"], Float[np.ndarray, "F 3"]]:
+    """Retargets frames of a BVH clip onto the body's `cmu_mb` rig.
+
+    `Retargeter.from_bvh(bvh, body, unit=unit)(bvh, frames, ...)`; build the
+    [`bodyprior.Retargeter`][] once instead when retargeting several clips of one skeleton.
 
     **Arguments:**
 
-    - `bvh`: a CMU (MotionBuilder or 3ds-Max names) or Daz-friendly [`bodyprior.Bvh`][].
-    - `body`: the default body with the `cmu_mb` rig.
-    - `frames`: optional frame indices (default all).
+    - `bvh`: a [`bodyprior.Bvh`][] (see `SKELETON_KINDS` for the skeletons it may have).
+    - `body`: a [`bodyprior.DefaultBody`][] with the `cmu_mb` rig.
+    - `frames`, `keep_root_rotation`, `keep_root_translation`: as
+      [`bodyprior.Retargeter.__call__`][]; default all frames, root at rest, zero translation.
+    - `unit`: metres per BVH length unit (default by skeleton kind, see
+      [`bodyprior.Retargeter.from_bvh`][]).
 
-    **Returns:** rotation matrices in bodyprior's convention (see the module docstring).
+    **Returns:** `(pose (F, J, 3), root_translation (F, 3))`: axis-angle rig pose (radians,
+    `body.joint_names` order) and root translation (metres, bodyprior world frame), NumPy float64.
+
+    !!! example
+
+        ```python
+        bvh = bp.read_bvh("01_01.bvh")
+        pose, trans = bp.retarget(bvh, body, slice(1, None), keep_root_rotation=True,
+                                  keep_root_translation=True)
+        verts, joints = bp.evaluate(body, bp.phenotype_vector(), pose[0], trans[0])
+        ```
     """
-    kind = skeleton_kind(bvh)
-    if kind == "cmu_3dsmax":
-        bvh = _rename(bvh, _MAX_TO_MB)
-    # the rest compensation depends only on the skeleton (names and offsets), not on the motion
-    key = (kind, bvh.joint_names, bvh.offsets.tobytes(), bvh.end_offsets.tobytes())
-    rt = None if _cache is None else _cache.get(key)
-    if rt is None:
-        rt = _build_retarget(bvh, _MAPS[_KIND_INFO[kind][0]], body)
-        if _cache is not None:
-            _cache[key] = rt
-    G = mocap_world_rotations(bvh, frames)
-    F = G.shape[0]
-    W = np.empty((F, len(POSE_JOINTS), 3, 3))
-    W_root = G[:, rt.root_driver] @ rt.C_root
-    R = np.empty_like(W)
-    for k in range(len(POSE_JOINTS)):
-        Wa = W_root if rt.anchor[k] < 0 else W[:, rt.anchor[k]]
-        if rt.driver[k] < 0:
-            W[:, k] = Wa  # no counterpart: rigid with its parent (identity local rotation)
-            R[:, k] = np.eye(3)
-        else:
-            W[:, k] = G[:, rt.driver[k]] @ rt.C[k]
-            R[:, k] = np.swapaxes(Wa, -1, -2) @ W[:, k]
-    return R
+    rt = Retargeter.from_bvh(bvh, body, unit=unit)
+    return rt(
+        bvh,
+        frames,
+        keep_root_rotation=keep_root_rotation,
+        keep_root_translation=keep_root_translation,
+    )
+
+
+#: Metres per length unit of the BVH files [`bodyprior.poses_to_bvh`][] writes (centimetres).
+_EXPORT_UNIT = 0.01
+_ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
+_JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")  # R = Rz @ Ry @ Rx, as CMU's files
+
+
+def poses_to_bvh(
+    body: DefaultBody,
+    poses: Float[np.ndarray, "F J 3"],
+    root_translation: Float[np.ndarray, "F 3"] | None = None,
+    *,
+    fps: float,
+    path: str | os.PathLike | None = None,
+    precision: int = 10,
+) -> Bvh:
+    """Writes rig poses as a BVH clip whose skeleton is the body's rig.
+
+    The skeleton is the rig at rest (default phenotypes): one joint per rig bone with the rig's bone
+    names and tree, `OFFSET`s from the rest joints, an `End Site` at the tail of each leaf bone;
+    BVH axes (Y up, facing +Z: bodyprior's `(x, y, z)` is written `(x, z, -y)`) in centimetres. The
+    root has channels `Xposition Yposition Zposition Zrotation Yrotation Xrotation`, every other
+    joint `Zrotation Yrotation Xrotation`. Reading the file back
+    ([`bodyprior.read_bvh`][]) and retargeting it onto the same body
+    ([`bodyprior.retarget`][] with `keep_root_rotation=True, keep_root_translation=True`) gives
+    back the poses' rotations of the root and the pose bones ([`bodyprior.POSE_JOINTS`][]) and the
+    root translation. (Rotations of the other rig bones are written too, but the retargeting keeps
+    those bones at rest.)
+
+    **Arguments:**
+
+    - `body`: a [`bodyprior.DefaultBody`][] (rig depth-first, as the default rigs).
+    - `poses`: shape `(F, J, 3)`, axis-angle local rotations (radians) in `body.joint_names` order
+      (as [`bodyprior.evaluate`][] and [`bodyprior.retarget`][]).
+    - `root_translation`: optional shape `(F, 3)`, metres, bodyprior world frame, as for
+      [`bodyprior.evaluate`][] (the root joint is at its rest position plus this); default zeros.
+    - `fps`: frames per second of the clip (the file's `Frame Time` is `1 / fps`).
+    - `path`: optional `.bvh` file to write (atomically, with [`bodyprior.write_bvh`][]).
+    - `precision`: significant digits written for offsets and channel values, 1..17.
+
+    **Returns:** the clip as a [`bodyprior.Bvh`][] (what the file holds, before rounding).
+
+    **Raises:** `ValueError` for `poses` or `root_translation` of the wrong shape or not finite, or
+    a `fps` that is not a positive number.
+    """
+    J = body.n_joints
+    poses = np.asarray(check_array(poses, "poses", (None, J, 3)), np.float64)
+    F = poses.shape[0]
+    if root_translation is None:
+        trans = np.zeros((F, 3))
+    else:
+        trans = np.asarray(check_array(root_translation, "root_translation", (F, 3)), np.float64)
+    if isinstance(fps, bool) or not (
+        isinstance(fps, (int, float, np.number)) and np.isfinite(fps) and fps > 0
+    ):
+        raise ValueError(f"`fps` must be a positive number of frames per second, got {fps!r}.")
+    heads, tails = _rig_rest(body)
+    parents = body.parents
+    to_file = lambda x: (x @ _M) / _EXPORT_UNIT  # noqa: E731  bodyprior axes, m -> BVH axes, cm
+    offsets = np.array([heads[j] - (heads[p] if p >= 0 else 0.0) for j, p in enumerate(parents)])
+    is_leaf = np.ones(J, bool)
+    is_leaf[[p for p in parents if p >= 0]] = False
+    end = np.where(is_leaf[:, None], tails - heads, np.nan)
+    # local rotations in BVH axes: M^T R M, as Euler angles Z, Y, X (degrees)
+    R = _to_matrices(poses.reshape(-1, 3), "axis_angle").reshape(F, J, 3, 3)
+    angles = np.degrees(_to_euler(_M.T @ R @ _M, "ZYX"))  # (F, J, 3)
+    motion = np.concatenate([to_file(trans)[:, None, :], angles], axis=1).reshape(F, -1)
+    channels = (_ROOT_CHANNELS,) + (_JOINT_CHANNELS,) * (J - 1)
+    bvh = Bvh(
+        joint_names=body.joint_names,
+        parents=parents,
+        offsets=to_file(offsets),
+        channels=channels,
+        end_offsets=to_file(end),
+        frame_time=1.0 / float(fps),
+        motion=motion,
+    )
+    if path is not None:
+        write_bvh(path, bvh, precision=precision)
+    return bvh
 
 
 _CHUNK = 8192
@@ -506,19 +859,48 @@ def _matrix_to_euler_chunk(R, order):
     return jax.vmap(lambda m: matrix_to_euler(m, order))(R)
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _matrix_chunk(x, rep):
+    if rep == "axis_angle":
+        return jax.vmap(axis_angle_to_matrix)(x)
+    raise AssertionError(rep)  # pragma: no cover
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _from_matrix_chunk(R, rep):
+    if rep == "axis_angle":
+        return jax.vmap(matrix_to_axis_angle)(R)
+    raise AssertionError(rep)  # pragma: no cover
+
+
+def _chunked(fn, x: np.ndarray, arg, pad: np.ndarray, out_shape: tuple[int, ...]) -> np.ndarray:
+    """`fn(x, arg)` over the leading axis of `x` in fixed-size chunks (one compile per shape),
+    float64; `pad` fills the last chunk."""
+    out = np.empty((x.shape[0], *out_shape))
+    with jax.enable_x64(True):
+        for s in range(0, len(x), _CHUNK):
+            block = x[s : s + _CHUNK]
+            padded = np.broadcast_to(pad, (_CHUNK, *pad.shape)).copy()
+            padded[: len(block)] = block
+            out[s : s + len(block)] = np.asarray(fn(padded, arg))[: len(block)]
+    return out
+
+
 def _to_euler(R: np.ndarray, order: str = EULER_ORDER) -> np.ndarray:
     """`(..., 3, 3)` rotation matrices -> `(..., 3)` Euler angles, float64 (fixed-size chunks)."""
-    flat = R.reshape(-1, 3, 3)
-    out = np.empty((flat.shape[0], 3))
-    with jax.enable_x64(True):
-        for s in range(0, len(flat), _CHUNK):
-            block = flat[s : s + _CHUNK]
-            padded = np.broadcast_to(np.eye(3), (_CHUNK, 3, 3)).copy()
-            padded[: len(block)] = block
-            out[s : s + len(block)] = np.asarray(_matrix_to_euler_chunk(padded, order))[
-                : len(block)
-            ]
+    out = _chunked(_matrix_to_euler_chunk, R.reshape(-1, 3, 3), order, np.eye(3), (3,))
     return out.reshape(*R.shape[:-2], 3)
+
+
+def _from_matrices(R: np.ndarray, rep: str) -> np.ndarray:
+    """`(..., 3, 3)` rotation matrices -> `(..., 3)` axis-angle, float64."""
+    out = _chunked(_from_matrix_chunk, R.reshape(-1, 3, 3), rep, np.eye(3), (3,))
+    return out.reshape(*R.shape[:-2], 3)
+
+
+def _to_matrices(x: np.ndarray, rep: str) -> np.ndarray:
+    """`(N, 3)` axis-angle -> `(N, 3, 3)` rotation matrices, float64."""
+    return _chunked(_matrix_chunk, x, rep, np.zeros(3), (3, 3))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -634,7 +1016,9 @@ def load_mocap(
         body = load_default_body("cmu_mb")
     _pose_index(body.joint_names)
     rates = DEFAULT_FRAME_RATES if frame_rates is None else dict(frame_rates)
-    eulers, clips, names, cache = [], [], [], {}
+    heads, tails = _rig_rest(body)
+    retargeters: dict = {}  # one per skeleton (joint names, offsets, End Sites) in this call
+    eulers, clips, names = [], [], []
     for path in tqdm(files, desc="mocap", unit="file", disable=not progress):
         bvh = read_bvh(path)
         try:
@@ -649,8 +1033,12 @@ def load_mocap(
         entry["skipped"] = frames.size == 0
         if frames.size == 0:
             continue
+        key = (bvh.joint_names, bvh.offsets.tobytes(), bvh.end_offsets.tobytes())
         try:
-            R = retarget_matrices(bvh, body, frames, _cache=cache)
+            rt = retargeters.get(key)
+            if rt is None:
+                rt = retargeters[key] = _build_retargeter(bvh, body, heads, tails, None)
+            R = rt.local_matrices(bvh, frames)
         except ValueError as e:  # e.g. a joint of the map missing: name the file
             raise ValueError(f"{path}: {e}") from None
         if drop_implausible:

@@ -431,3 +431,86 @@ def test_render_poses(tmp_path, body):
     assert (tmp_path / "p.png").stat().st_size > 0
     with pytest.raises(ValueError, match="`euler`"):
         render_poses(body, np.zeros((2, 19, 3)), tmp_path / "q.png")
+
+
+# --------------------------------------------------------------------------------------------------
+# public retargeting: Retargeter, retarget, poses_to_bvh, 2008 CMU names
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def _angle(a, b):
+    Ra = jax.vmap(bp.axis_angle_to_matrix)(jnp.asarray(a.reshape(-1, 3)))
+    Rb = jax.vmap(bp.axis_angle_to_matrix)(jnp.asarray(b.reshape(-1, 3)))
+    cos = (jnp.trace(jnp.swapaxes(Ra, -1, -2) @ Rb, axis1=-2, axis2=-1) - 1) / 2
+    return np.arccos(np.clip(np.asarray(cos), -1, 1))
+
+
+def test_cmu_2008_names_retarget_like_2010(tmp_path, body):
+    b08 = bp.read_bvh(DATA / "cmu_mb2008_02_06_3frames.bvh")
+    assert M.skeleton_kind(b08) == "cmu_mb2008"
+    b10 = M._rename(b08, M._MB2008_TO_MB)
+    assert M.skeleton_kind(b10) == "cmu_mb"
+    p08, t08 = bp.retarget(b08, body, [1, 2], keep_root_rotation=True, keep_root_translation=True)
+    p10, _ = bp.retarget(b10, body, [1, 2], keep_root_rotation=True, keep_root_translation=True)
+    np.testing.assert_array_equal(p08, p10)
+    assert p08.shape == (2, body.n_joints, 3) and np.all(np.isfinite(p08))
+    assert abs(t08[0, 2] + body_root_height(body) - 1.0) < 0.1  # CMU hips about 1 m high
+    ps = load_mocap(DATA / "cmu_mb2008_02_06_3frames.bvh", progress=False, body=body,
+                    min_duration=0.0)  # fmt: skip
+    assert ps.n_poses == 1 and np.all(np.abs(np.asarray(ps.euler)) < np.pi)
+    # a missing joint is named as in the file (RFingers, not RightHandIndex1)
+    bad = dataclasses_replace_names(b08, {"RFingers": "RFinger"})
+    with pytest.raises(ValueError, match="No joint named 'RFingers'"):
+        bp.Retargeter.from_bvh(bad, body)
+
+
+def body_root_height(body):
+    return M._rig_rest(body)[0][0, 2]
+
+
+def dataclasses_replace_names(bvh, mapping):
+    return M._rename(bvh, mapping)
+
+
+def test_missing_joint_error_names_3dsmax_joint(body):
+    bvh = _skeleton(_rig_spec(body), np.random.default_rng(5), 2)
+    bvh = M._rename(bvh, {v: k for k, v in M._MAX_TO_MB.items()})
+    bvh = M._rename(bvh, {"LFingers": "LFinger"})
+    assert M.skeleton_kind(bvh) == "cmu_3dsmax"
+    with pytest.raises(ValueError, match="No joint named 'LFingers'"):
+        bp.retarget(bvh, body)
+
+
+def test_retarget_frames_and_export_round_trip(tmp_path, body):
+    bvh = _skeleton(_rig_spec(body), np.random.default_rng(6), 6)
+    rt = bp.Retargeter.from_bvh(bvh, body)
+    pose, trans = rt(bvh, slice(1, None), keep_root_rotation=True, keep_root_translation=True)
+    assert pose.shape == (5, body.n_joints, 3) and trans.shape == (5, 3)
+    # any frames: the same as the matching rows of all frames; the DSPP pose is the same
+    p2, _ = rt(bvh, [4, -5], keep_root_rotation=True)
+    np.testing.assert_allclose(p2, pose[[3, 0]], atol=1e-12)
+    R = rt.local_matrices(bvh, [2])
+    np.testing.assert_allclose(M._to_euler(R)[0], pose_euler(body, pose[1]), atol=1e-9)
+    with pytest.raises(ValueError, match="`frames` must index the 6 frames"):
+        rt(bvh, [6])
+    with pytest.raises(ValueError, match="`frames`"):
+        rt(bvh, np.zeros((2, 2), int))
+    # export, read back, retarget onto the same body: the same poses and translations
+    out = tmp_path / "rig.bvh"
+    bp.poses_to_bvh(body, pose, trans, fps=30.0, path=out)
+    back = bp.read_bvh(out)
+    assert M.skeleton_kind(back) == "rig" and back.frame_time == pytest.approx(1 / 30)
+    p3, t3 = bp.retarget(back, body, keep_root_rotation=True, keep_root_translation=True)
+    assert _angle(p3, pose).max() < 1e-6
+    np.testing.assert_allclose(t3, trans, atol=1e-7)
+    phen = jnp.asarray(bp.phenotype_vector())
+    j1 = np.asarray(bp.evaluate(body, phen, jnp.asarray(pose[2]), jnp.asarray(trans[2]))[1])
+    j3 = np.asarray(bp.evaluate(body, phen, jnp.asarray(p3[2]), jnp.asarray(t3[2]))[1])
+    np.testing.assert_allclose(j3, j1, atol=1e-5)
+    with pytest.raises(ValueError, match="`fps`"):
+        bp.poses_to_bvh(body, pose, fps=0.0)
+    with pytest.raises(ValueError, match="`poses`"):
+        bp.poses_to_bvh(body, pose[:, :3], fps=30.0)
+    with pytest.raises(ValueError, match="skeleton this Retargeter was built for"):
+        rt(back)
