@@ -7,7 +7,11 @@ kinematics on the 31-bone `cmu_mb` rig -> linear blend skinning, float32, on all
 blendshapes, under `torch.inference_mode()`. Times are medians over repeats; bodyprior's compile time is
 reported separately (`compile_s`).
 
-Usage: `python benchmarks/body_eval.py --json out/body_eval.json [--repeats 30]`.
+`--quick`: the same comparison with 5 repeats and batches 1 and 16 (seconds); the JSON says
+`"mode": "quick"`. Without anny/torch installed the peer side is skipped and the JSON says why
+(`anny_skipped`).
+
+Usage: `python benchmarks/body_eval.py --json out/body_eval.json [--repeats 30] [--quick]`.
 """
 
 from __future__ import annotations
@@ -111,9 +115,13 @@ def main(argv=None):
     ap.add_argument("--json", required=True, help="where to write the results")
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 128])
+    ap.add_argument("--quick", action="store_true", help="5 repeats, batches 1 and 16 (seconds)")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.repeats, args.batches = 5, [1, 16]
     b1, bN = args.batches[0], args.batches[-1]
     res = dict(
+        mode="quick" if args.quick else "full",
         machine=dict(cpus=os.cpu_count(), platform=platform.platform(), python=sys.version.split()[0],
                      jax=jax.__version__, device=str(jax.devices()[0])),
         repeats=args.repeats,
@@ -130,6 +138,7 @@ def main(argv=None):
         an = bench_anny(args.batches, args.repeats)
     except ImportError as e:
         print(f"anny not installed ({e}); install the `compare` extra for the side-by-side numbers")
+        res["anny_skipped"] = f"anny/torch not installed ({e}); no side-by-side numbers"
         an = None
     if an is not None:
         import anny  # noqa: F401

@@ -13,7 +13,11 @@ The networks are freshly initialised with the default `DSPPConfig` (speed does n
 weights); float32; all CPU threads. The paper's figures (PyTorch 1.1, GTX 1080): 70 ms per training
 step, 5 ms per sampled pair. No public implementation of the paper exists to run side by side.
 
-Usage: `python benchmarks/dspp.py --json out/dspp.json [--repeats 30]`.
+`--quick`: the same measurements with 3 repeats, sampling batch 16 instead of 256, training batches
+1 and 8 instead of 1 and 64, and a 5-cycle scan (keys named after those sizes; compilation
+dominates); the JSON says `"mode": "quick"`.
+
+Usage: `python benchmarks/dspp.py --json out/dspp.json [--repeats 30] [--quick]`.
 """
 
 from __future__ import annotations
@@ -32,8 +36,8 @@ import jax.random as jr
 import numpy as np
 
 import bodyprior as bp
+from bodyprior import internal
 from bodyprior.dspp import DSPPConfig, init_aegan
-from bodyprior.dspp._train import _aegan_cycle, _init_state
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -55,7 +59,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", required=True, help="output JSON path")
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--quick", action="store_true", help="small batches, 3 repeats (see docstring)")
     args = ap.parse_args(argv)
+    n_sample, train_batches, n_scan = 256, (1, 64), 20
+    if args.quick:
+        args.repeats, n_sample, train_batches, n_scan = 3, 16, (1, 8), 5
 
     body = bp.load_default_body("cmu_mb")
     vmap_idx, _ = bp.load_decimated()
@@ -63,7 +71,11 @@ def main(argv=None) -> int:
     cfg = DSPPConfig()
     shape = init_aegan("shape", mean_shape, 0.05, cfg, jr.PRNGKey(0))
     pose = init_aegan("pose", np.zeros((20, 3)), 0.3, cfg, jr.PRNGKey(1))
-    out: dict = {"config": cfg.to_dict(), "n_vertices": int(mean_shape.shape[0])}
+    out: dict = {
+        "mode": "quick" if args.quick else "full",
+        "config": cfg.to_dict(),
+        "n_vertices": int(mean_shape.shape[0]),
+    }
 
     # --- sampling -------------------------------------------------------------------------------
     @eqx.filter_jit
@@ -76,11 +88,13 @@ def main(argv=None) -> int:
         return jax.vmap(lambda k: pair1.__wrapped__(sp, pp, k))(keys)
 
     key = jr.PRNGKey(2)
-    keys = jr.split(key, 256)
+    keys = jr.split(key, n_sample)
     out["compile_s_sample_b1"] = _first_s(lambda: pair1(shape, pose, key))
     out["sample_pair_ms_b1"] = _median_ms(lambda: pair1(shape, pose, key), args.repeats)
-    out["compile_s_sample_b256"] = _first_s(lambda: pair_b(shape, pose, keys))
-    out["sample_pair_ms_b256"] = _median_ms(lambda: pair_b(shape, pose, keys), args.repeats) / 256
+    out[f"compile_s_sample_b{n_sample}"] = _first_s(lambda: pair_b(shape, pose, keys))
+    out[f"sample_pair_ms_b{n_sample}"] = (
+        _median_ms(lambda: pair_b(shape, pose, keys), args.repeats) / n_sample
+    )
 
     # --- training -------------------------------------------------------------------------------
     rng = np.random.default_rng(0)
@@ -93,24 +107,24 @@ def main(argv=None) -> int:
     @eqx.filter_jit(donate="all-except-first")
     def step(data, ts_s, ts_p, cfg):
         us, up = data
-        ts_s, rs = _aegan_cycle(ts_s, us, cfg)
-        ts_p, rp = _aegan_cycle(ts_p, up, cfg)
+        ts_s, rs = internal.dspp_aegan_cycle(ts_s, us, cfg)
+        ts_p, rp = internal.dspp_aegan_cycle(ts_p, up, cfg)
         return ts_s, ts_p, rs, rp
 
     @eqx.filter_jit
     def scan20(ts_s, ts_p, us, up, cfg):
         def body_fn(c, _):
             a, b = c
-            a, ra = _aegan_cycle(a, us, cfg)
-            b, rb = _aegan_cycle(b, up, cfg)
+            a, ra = internal.dspp_aegan_cycle(a, us, cfg)
+            b, rb = internal.dspp_aegan_cycle(b, up, cfg)
             return (a, b), (ra, rb)
 
-        return jax.lax.scan(body_fn, (ts_s, ts_p), None, length=20)
+        return jax.lax.scan(body_fn, (ts_s, ts_p), None, length=n_scan)
 
-    for b in (1, 64):
+    for b in train_batches:
         c = DSPPConfig(batch_size=b)
-        ts_s = _init_state("shape", "aegan", mean_shape, 0.05, c, jr.PRNGKey(3))
-        ts_p = _init_state("pose", "aegan", np.zeros((20, 3)), 0.3, c, jr.PRNGKey(4))
+        ts_s = internal.dspp_init_state("shape", "aegan", mean_shape, 0.05, c, jr.PRNGKey(3))
+        ts_p = internal.dspp_init_state("pose", "aegan", np.zeros((20, 3)), 0.3, c, jr.PRNGKey(4))
         state = [ts_s, ts_p]
 
         def one():
@@ -128,7 +142,7 @@ def main(argv=None) -> int:
             return r
 
         out[f"compile_s_train_scan_b{b}"] = _first_s(twenty)
-        out[f"train_step_ms_b{b}_scan"] = _median_ms(twenty, max(3, args.repeats // 5)) / 20
+        out[f"train_step_ms_b{b}_scan"] = _median_ms(twenty, max(3, args.repeats // 5)) / n_scan
 
     out["goals"] = {"sample_pair_ms_b1": 1.0, "train_step_ms_b1": 20.0}
     out["paper"] = {

@@ -4,7 +4,7 @@ Same problem on both sides, in the same run: the full-resolution template (13,38
 aligned to a simulated laser scan (~40k points) by the landmark similarity, the paper's weight
 schedule (one round α = 0, β = 1e6, γ = 1e-3, then α = 1 and β, γ x 0.25 per round until
 β <= 1e3), correspondences recomputed every round with the same rule and the same code
-(`bodyprior.registration._nrd._correspond`, jitted), the same energy (`_nrd._system` assembles the
+(`bodyprior.internal.nrd_correspond`, jitted), the same energy (`internal.nrd_system` assembles the
 round's normal equations; scipy gets them as a sparse matrix: f = Σ_c x_cᵀ H x_c − 2 x_cᵀ R_c,
 ∇f = 2 (H X − R)), float64, and the same early-stopping rule. bodyprior: `bodyprior.registration.nrd`
 (one jitted call for all rounds; PCG with a two-level preconditioner). L-BFGS-B (the paper's
@@ -19,7 +19,12 @@ Also: one round's system solved by the alternatives (optimistix Gauss-Newton wit
 `lineax.Normal(lineax.CG)`, block-Jacobi PCG) at a fixed step budget, and batched throughput on the
 6,449-vertex template (`nrd_batch`, 19,347-point scans).
 
-Usage: `python benchmarks/nrd.py --json benchmarks/results/nrd_2cpu.json [--repeats 3]`.
+`--quick`: the same comparisons on the 6,449-vertex decimated template and 10,000-point scans, one
+timed repeat, L-BFGS-B "to convergence" capped at 500 iterations per round, no further scans, a
+100-step solver budget and a batch of 2 (about a minute or two, mostly compilation); the JSON says
+`"mode": "quick"`.
+
+Usage: `python benchmarks/nrd.py --json benchmarks/results/nrd_2cpu.json [--repeats 3] [--quick]`.
 """
 
 from __future__ import annotations
@@ -45,8 +50,8 @@ import scipy.optimize  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
-from bodyprior.registration import _nrd
-from bodyprior.sscape._fit import fit_similarity  # noqa: E402
+from bodyprior import internal  # noqa: E402
+from bodyprior.sscape import fit_similarity  # noqa: E402
 
 
 def _block(x):
@@ -96,11 +101,11 @@ class Peer:
     """Round data (correspondences, normal equations) from the library's jitted kernels; the
     minimisation of each round by scipy L-BFGS-B."""
 
-    def __init__(self, tmpl, scan, init, cfg: _nrd.NRDConfig):
+    def __init__(self, tmpl, scan, init, cfg: bp.registration.NRDConfig):
         self.cfg = cfg
-        self.prep = _nrd._prepare(tmpl, 0)
-        lm_v, lm_use = _nrd._landmark_map(tmpl, scan.landmark_names)
-        pts, nrm, pm, lms, lmm = _nrd._scan_arrays(scan, batched=False)
+        self.prep = internal.nrd_prepare(tmpl, 0)
+        lm_v, lm_use = internal.nrd_landmark_map(tmpl, scan.landmark_names)
+        pts, nrm, pm, lms, lmm = internal.nrd_scan_arrays(scan, batched=False)
         init = jnp.asarray(init)
         self.V = init.shape[0]
         centre = init.mean(0)
@@ -109,14 +114,15 @@ class Peer:
         self.centre = centre
         b = (lms - centre) * 1000
         prep = self.prep
-        alpha, beta, beta_head, gamma = (jnp.asarray(a) for a in _nrd._schedule(cfg))
+        alpha, beta, beta_head, gamma = (jnp.asarray(a) for a in internal.nrd_schedule(cfg))
         self.n_rounds = alpha.shape[0]
         n_lm = jnp.maximum(jnp.sum(lm_use & lmm), 1)
-        grids = _nrd._grids(self.q_all, pm, cfg, prep)
+        grids = internal.nrd_grids(self.q_all, pm, cfg, prep)
 
         @jax.jit
         def corr(X):
-            return _nrd._correspond(prep, cfg, _nrd._apply(self.ph, X), grids, self.q_all, nrm, pm)
+            y = internal.nrd_apply(self.ph, X)
+            return internal.nrd_correspond(prep, cfg, y, grids, self.q_all, nrm, pm)
 
         @jax.jit
         def round_system(r, idx, valid):
@@ -125,15 +131,15 @@ class Peer:
             q = jnp.where(valid[:, None], self.q_all[jnp.maximum(idx, 0)], 0.0)
             wl = gamma[r] * (lm_use & lmm) / n_lm
             ws = (jnp.stack([beta[r], beta_head[r], beta[r]]) / prep.n_nb)[prep.group]
-            rnd = _nrd._Round(wd, q, wl, lm_v, b, ws)
-            s = _nrd._system(rnd, self.ph, prep, coarse=False)
+            rnd = internal.NRDRound(wd, q, wl, lm_v, b, ws)
+            s = internal.nrd_system(rnd, self.ph, prep, coarse=False)
             const = jnp.sum(wd * jnp.sum(q**2, -1)) + jnp.sum(wl * jnp.sum(b**2, -1))
             return rnd, s.d, s.rhs, s.w, const
 
         @jax.jit
         def energy(X, rnd, valid):
-            e, _ = _nrd._energy(X, self.ph, rnd, prep)
-            y = _nrd._apply(self.ph, X)
+            e, _ = internal.nrd_energy(X, self.ph, rnd, prep)
+            y = internal.nrd_apply(self.ph, X)
             dist = jnp.sqrt(jnp.sum((y - rnd.q) ** 2, -1))
             err = jnp.sum(jnp.where(valid, dist, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
             return e, err
@@ -229,13 +235,13 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
     ph = peer.ph
     X0 = jnp.asarray(X_prev)
     for name, patches in (("pcg_two_level", cfg.n_patches), ("pcg_block_jacobi", 0)):
-        prep = _nrd._prepare(tmpl, patches)
+        prep = internal.nrd_prepare(tmpl, patches)
 
         @eqx.filter_jit
         def solve(X0, rtol, prep=prep, coarse=patches > 0):
-            s = _nrd._system(rnd, ph, prep, coarse)
-            X, k, res = _nrd._pcg(s, X0, rtol, budget)
-            return X, k, res, _nrd._energy(X, ph, rnd, prep)[0]
+            s = internal.nrd_system(rnd, ph, prep, coarse)
+            X, k, res = internal.nrd_pcg(s, X0, rtol, budget)
+            return X, k, res, internal.nrd_energy(X, ph, rnd, prep)[0]
 
         _block(solve(X0, cfg.cg_rtol))
         t = time.perf_counter()
@@ -250,10 +256,10 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
     secs = time.perf_counter() - t
     e = peer.energy(jnp.asarray(sol.x.reshape(X0.shape)), rnd, valid)[0]
     out["lbfgsb_100"] = dict(seconds=secs, steps=int(sol.nit), energy=float(e))
-    prep = _nrd._prepare(tmpl, 0)
+    prep = internal.nrd_prepare(tmpl, 0)
 
     def residuals(X, _):
-        y = _nrd._apply(ph, X)
+        y = internal.nrd_apply(ph, X)
         rd = jnp.sqrt(rnd.wd)[:, None] * (y - rnd.q)
         rs = (
             jnp.sqrt(rnd.ws * 1.0)[:, None, None, None]
@@ -271,7 +277,7 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
             linear_solver=lx.Normal(lx.CG(rtol=1e-6, atol=1e-6, max_steps=budget)),
         )
         sol = optx.least_squares(residuals, solver, X0, max_steps=1, throw=False)
-        return sol.value, _nrd._energy(sol.value, ph, rnd, prep)[0]
+        return sol.value, internal.nrd_energy(sol.value, ph, rnd, prep)[0]
 
     _block(gn(X0))
     t = time.perf_counter()
@@ -279,7 +285,7 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
     out["optimistix_gauss_newton_normal_cg"] = dict(
         seconds=time.perf_counter() - t, steps=budget, energy=float(e)
     )
-    out["start_energy"] = float(_nrd._energy(X0, ph, rnd, prep)[0])
+    out["start_energy"] = float(internal.nrd_energy(X0, ph, rnd, prep)[0])
     out["cg_step_budget"] = budget
     return out
 
@@ -287,7 +293,7 @@ def compare_solvers(tmpl, scan, init, X_prev, idx, valid, cfg, budget: int):
 # --------------------------------------------------------------------------------------------------
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", required=True)
     ap.add_argument("--repeats", type=int, default=3)
@@ -302,9 +308,16 @@ def main():
         default=5,
         help="further scans on which both sides run once (final energy depends on the path)",
     )
-    args = ap.parse_args()
-    cfg = _nrd.NRDConfig()
+    ap.add_argument("--quick", action="store_true", help="small problem, seconds (see docstring)")
+    args = ap.parse_args(argv)
+    decimated, batch_points, budget = False, 19347, 300
+    if args.quick:
+        args.repeats, args.n_points, args.max_iter = 1, 10000, 500
+        args.batch, args.energy_scans = 2, 0
+        decimated, batch_points, budget = True, 10000, 100
+    cfg = bp.registration.NRDConfig()
     res: dict = dict(
+        mode="quick" if args.quick else "full",
         machine=dict(
             platform=platform.platform(),
             cpus=os.cpu_count(),
@@ -319,7 +332,7 @@ def main():
         config=dict(n_points=args.n_points, seed=args.seed, repeats=args.repeats, nrd=repr(cfg)),
     )
     t = time.perf_counter()
-    tmpl, (scan,), (truth,), (init,) = make_problem(args.seed, False, args.n_points)
+    tmpl, (scan,), (truth,), (init,) = make_problem(args.seed, decimated, args.n_points)
     res["setup_s"] = time.perf_counter() - t
     res["n_vertices"], res["n_scan_points"] = int(tmpl.n_vertices), int(scan.points.shape[0])
     res["init_gt_error_mm"] = gt_error_mm(init, truth, tmpl)
@@ -383,7 +396,7 @@ def main():
     more = []
     for i in range(args.energy_scans):
         s = args.seed + 10 + i
-        tmpl_i, (scan_i,), (truth_i,), (init_i,) = make_problem(s, False, args.n_points)
+        tmpl_i, (scan_i,), (truth_i,), (init_i,) = make_problem(s, decimated, args.n_points)
         t = time.perf_counter()
         o = _block(bp.registration.nrd(init_i, tmpl_i, scan_i, config=cfg))
         t_bp = time.perf_counter() - t
@@ -441,12 +454,12 @@ def main():
     Xp = _internal_X(prev, init, centre)
     idx, valid = peer.corr(Xp)
     res["solver_comparison_last_round"] = compare_solvers(
-        tmpl, scan, init, Xp, idx, valid, cfg, 300
+        tmpl, scan, init, Xp, idx, valid, cfg, budget
     )
     print("solvers", res["solver_comparison_last_round"], flush=True)
 
     # batched throughput on the decimated template
-    tmpl_d, scans, truths, inits = make_problem(args.seed + 1, True, 19347, args.batch)
+    tmpl_d, scans, truths, inits = make_problem(args.seed + 1, True, batch_points, args.batch)
     batch = bp.registration.pad_scans(scans)
     init_b = jnp.stack(inits)
     t = time.perf_counter()

@@ -12,7 +12,11 @@ points each, default 19,347 as humanshape) and fitted with the default `FitConfi
 - the mean per-vertex error against the true template-topology body (all vertices and without hands)
   and the fitting statistics.
 
-Usage: `python benchmarks/sscape_fit.py --json out/sscape_fit.json [--batch 4 --repeats 3]`.
+`--quick`: the same measurements with a 24-body, 8-component space, a batch of 2 scans of 6,449
+points and one timed repeat (a minute or two, mostly compilation); the JSON says `"mode": "quick"`.
+
+Usage: `python benchmarks/sscape_fit.py --json out/sscape_fit.json [--batch 4 --repeats 3]
+[--quick]`.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", required=True)
     ap.add_argument("--n-train", type=int, default=100)
@@ -43,7 +47,10 @@ def main():
     ap.add_argument("--n-points", type=int, default=19347)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
+    ap.add_argument("--quick", action="store_true", help="small space and batch (see docstring)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.n_train, args.components, args.batch, args.n_points, args.repeats = 24, 8, 2, 6449, 1
 
     import bodyprior as bp
     from bodyprior.registration import ScannerConfig, simulate_scans
@@ -79,6 +86,7 @@ def main():
         times.append(time.perf_counter() - t)
     single_s = float(np.median(times[1:]))
     out = {
+        "mode": "quick" if args.quick else "full",
         "n_points": args.n_points,
         "n_train": args.n_train,
         "components": args.components,

@@ -59,9 +59,14 @@ from bodyprior.registration import (
     registration_template,
     simulate_depth_scan,
 )
-from bodyprior.sscape import DepthFitConfig, fit_depth, learn, truncate
-from bodyprior.sscape._fit import FitConfig  # noqa: E402
-from bodyprior.sscape._posture import learn_normalized  # noqa: E402
+from bodyprior.sscape import (
+    DepthFitConfig,
+    FitConfig,
+    fit_depth,
+    learn,
+    learn_normalized,
+    truncate,
+)
 
 THRESHOLDS = np.linspace(0.0, 50.0, 51)
 

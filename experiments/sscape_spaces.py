@@ -55,7 +55,7 @@ from bodyprior import (
     registration,  # noqa: E402
     sscape,  # noqa: E402
 )
-from bodyprior.sscape._fit import FitConfig  # noqa: E402
+from bodyprior.sscape import FitConfig  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 # The registration experiment's S-SCAPE fit priors (landmark term, pose prior; chosen there).
