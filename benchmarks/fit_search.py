@@ -67,7 +67,7 @@ def main():
             t = time.perf_counter()
             r = jax.block_until_ready(sscape.fit_sscape(model, take(i), tmpl, config=cfg))
             ts.append(time.perf_counter() - t)
-            e = np.linalg.norm(np.asarray(r.vertices) - gt[24 + i], axis=1)
+            e = np.linalg.norm(np.asarray(r.value.vertices) - gt[24 + i], axis=1)
             errs.append(float(1000 * e.mean()))
         res[name] = dict(first_s=first, per_scan_s=ts, median_s=float(np.median(ts)),
                          gt_error_mm=errs)  # fmt: skip

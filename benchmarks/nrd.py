@@ -334,15 +334,15 @@ def main():
         t = time.perf_counter()
         out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
         times.append(time.perf_counter() - t)
-    n = int(out.n_rounds)
+    n = int(out.stats["rounds"])
     res["bodyprior_s"] = float(np.median(times))
     res["bodyprior_times_s"] = times
     res["compile_s"] = first - res["bodyprior_s"]
-    res["bodyprior_energy"] = float(out.energy[n - 1])
-    res["bodyprior_round_energies"] = np.asarray(out.energy)[:n].tolist()
-    res["bodyprior_mean_distance_mm"] = np.asarray(out.mean_distance_mm)[1:n].tolist()
-    res["bodyprior_cg_steps"] = np.asarray(out.cg_steps)[:n].tolist()
-    res["bodyprior_gt_error_mm"] = gt_error_mm(out.vertices, truth, tmpl)
+    res["bodyprior_energy"] = float(out.stats["energy"][n - 1])
+    res["bodyprior_round_energies"] = np.asarray(out.stats["energy"])[:n].tolist()
+    res["bodyprior_mean_distance_mm"] = np.asarray(out.stats["mean_distance_mm"])[1:n].tolist()
+    res["bodyprior_cg_steps"] = np.asarray(out.stats["cg_steps"])[:n].tolist()
+    res["bodyprior_gt_error_mm"] = gt_error_mm(out.value.vertices, truth, tmpl)
     print(
         "bodyprior",
         res["bodyprior_s"],
@@ -398,9 +398,9 @@ def main():
                 bodyprior_s=t_bp,
                 lbfgsb_s=t_lb,
                 speedup=t_lb / t_bp,
-                bodyprior_energy=float(o.energy[int(o.n_rounds) - 1]),
+                bodyprior_energy=float(o.stats["energy"][int(o.stats["rounds"]) - 1]),
                 lbfgsb_energy=energies[-1],
-                bodyprior_gt_error_mm=gt_error_mm(o.vertices, truth_i, tmpl_i)["all"],
+                bodyprior_gt_error_mm=gt_error_mm(o.value.vertices, truth_i, tmpl_i)["all"],
                 lbfgsb_gt_error_mm=gt_error_mm(y, truth_i, tmpl_i)["all"],
             )
         )
@@ -425,7 +425,7 @@ def main():
         print("all scans", res["all_scans"], flush=True)
 
     # the time per round spent on correspondences (shared by both sides)
-    X = jnp.swapaxes(out.transforms, 1, 2)  # unused values; only the timing matters
+    X = jnp.swapaxes(out.value.transforms, 1, 2)  # unused values; only the timing matters
     Xid = jnp.broadcast_to(jnp.eye(4, 3), (tmpl.n_vertices, 4, 3))
     _block(peer.corr(Xid))
     t = time.perf_counter()
@@ -463,7 +463,9 @@ def main():
         seconds=float(np.median(bt)),
         compile_s=first - float(np.median(bt)),
         scans_per_minute=60 * args.batch / float(np.median(bt)),
-        gt_error_mm=[gt_error_mm(ob.vertices[i], truths[i], tmpl_d) for i in range(args.batch)],
+        gt_error_mm=[
+            gt_error_mm(ob.value.vertices[i], truths[i], tmpl_d) for i in range(args.batch)
+        ],
     )
     _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
     t = time.perf_counter()
@@ -477,7 +479,7 @@ def main():
 
 def _internal_X(out, init, centre):
     """The solver's variables `X = (A_i)ᵀ` (centred mm frame) of a result's transforms."""
-    A = out.transforms
+    A = out.value.transforms
     lin = A[:, :, :3]
     t = (A[:, :, 3] - centre + jnp.einsum("vij,j->vi", lin, centre)) * 1000
     return jnp.swapaxes(jnp.concatenate([lin, t[:, :, None]], 2), 1, 2)

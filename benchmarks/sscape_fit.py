@@ -75,7 +75,7 @@ def main():
     for _ in range(args.repeats + 1):
         t = time.perf_counter()
         fit = fit_sscape(model, one, tmpl, config=cfg)
-        jax.block_until_ready(fit.vertices)
+        jax.block_until_ready(fit.value.vertices)
         times.append(time.perf_counter() - t)
     single_s = float(np.median(times[1:]))
     out = {
@@ -88,7 +88,7 @@ def main():
         "single_compile_s": float(times[0] - single_s),
         "single_scans_per_min": 60.0 / single_s,
         "single_passes": int(fit.stats["passes"]),
-        "single_solver_steps": int(fit.stats["solver_steps"]),
+        "single_solver_steps": int(fit.stats["num_steps"]),
     }
 
     def batched(devices, key):
@@ -114,9 +114,10 @@ def main():
     fits = batched([jax.devices()[0]], "batch_1dev")
     if len(jax.devices()) > 1:
         fits_sh = batched(jax.devices(), f"batch_{len(jax.devices())}dev")
-        out["sharded_max_diff_m"] = float(np.abs(fits_sh.vertices - fits.vertices).max())
+        diff = np.abs(fits_sh.value.vertices - fits.value.vertices)
+        out["sharded_max_diff_m"] = float(diff.max())
 
-    err = 1000 * np.linalg.norm(np.asarray(fits.vertices) - truth, axis=-1)
+    err = 1000 * np.linalg.norm(np.asarray(fits.value.vertices) - truth, axis=-1)
     out.update(
         gt_error_mm_mean=float(err.mean()),
         gt_error_mm_mean_no_hands=float(err[:, ~hand].mean()),

@@ -174,7 +174,8 @@ def run(args) -> dict:
     )  # fmt: skip
     for name, job in jobs:
         t = time.perf_counter()
-        models[name], logs[name] = job()
+        sol = job()
+        models[name], logs[name] = sol.value, sol.aux
         timings[f"train_{name}_s"] = time.perf_counter() - t
         log = logs[name]
         metrics[f"train_steps_{name}"] = log.n_steps

@@ -106,6 +106,18 @@ def _pad(model, k_max: int):
     )
 
 
+# The result codes of metrics.json: under the one result convention (`bodyprior.Solution`) a fit
+# that used all `max_rounds` is `RESULTS.successful` with `stats["converged"]` False; the metrics
+# keep the code the earlier convention gave it.
+_NOT_CONVERGED = "The data term was still changing after `max_passes` passes (the fit is usable)."
+
+
+def _result_code(sol) -> str:
+    if not bool(sol.result == bp.RESULTS.successful):
+        return bp.RESULTS[sol.result]
+    return "successful" if bool(sol.stats["converged"]) else _NOT_CONVERGED
+
+
 def _rest_error(fit_rest, scale, true_rest):
     """Per-vertex error (mm) of the scaled fitted rest shape after rigid alignment to the truth."""
     x = np.asarray(fit_rest, np.float64) * float(scale)
@@ -293,16 +305,17 @@ def main(argv=None):
         rest_err, posed_err, rounds, codes = [], [], [], []
         for s, subj in enumerate(subjects):
             t0 = time.perf_counter()
-            fit = fit_depth(m, subj["scans"][0], subj["scans"][1], tmpl, config=st.config,
+            sol = fit_depth(m, subj["scans"][0], subj["scans"][1], tmpl, config=st.config,
                             throw=False)  # fmt: skip
+            fit = sol.value
             jax.block_until_ready(fit.vertices)
             fit_times.append(time.perf_counter() - t0)
             rest_err.append(_rest_error(fit.rest_vertices, fit.scale, subj["rest"]))
             posed_err.append(np.concatenate(
                 [np.asarray(gt_error(fit.vertices[v], subj["posed"][v]))[~hand] for v in (0, 1)]
             ))  # fmt: skip
-            rounds.append(int(fit.stats["rounds"]))
-            codes.append(str(bp.sscape.FitResult[fit.result]) or "successful")
+            rounds.append(int(sol.stats["rounds"]))
+            codes.append(_result_code(sol))
             fits_kept[(norm, n, k, s)] = fit
             bar.update(1)
         re, pe = np.stack(rest_err), np.stack(posed_err)

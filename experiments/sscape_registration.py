@@ -179,7 +179,7 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
         chunk_size=chunk,
         progress=progress,
         throw=False,
-    )
+    ).value
     times["sscape_fit_s"] = time.perf_counter() - t0
     tmpl_v = jnp.asarray(tmpl.vertices, jnp.float64)  # NRD runs in its input's dtype: float64
     lm_tmpl = tmpl_v[tmpl.landmark_index]
@@ -199,7 +199,7 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
         res = []
         for i in tqdm(range(n), desc=name, disable=not progress, unit="scan"):
             r = registration.nrd(inits[name][i], tmpl, _index(scans, i), config=cfgs[name], throw=False)
-            res.append(np.asarray(r.vertices))
+            res.append(np.asarray(r.value.vertices))
         out[name] = np.stack(res)
         times[KEYS[name] + "_s"] = time.perf_counter() - t0
     return out, times

@@ -7,6 +7,7 @@ import jax.random as jr
 import numpy as np
 import pytest
 
+import bodyprior as bp
 from bodyprior import dspp
 from bodyprior.dspp._nets import LatentDiscriminator, PointNetDiscriminator
 
@@ -93,7 +94,9 @@ def test_spectral_norm_bounds_lipschitz(getkey):
 def test_training_decreases_ae_loss_and_is_deterministic(getkey):
     data = _shapes()
     cfg = _cfg(n_steps=300, batch_size=4, steps_per_call=100, checkpoint_every=300)
-    prior, log = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    sol = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    assert sol.result == bp.RESULTS.successful
+    prior, log = sol.value, sol.aux
     assert log.n_steps == 300 and log.finite
     assert np.mean(log.ae_loss[-20:]) < 0.2 * np.mean(log.ae_loss[:20])
     assert np.all((log.d_real > 0) & (log.d_real < 1)) and np.all(np.isfinite(log.g_loss))
@@ -102,7 +105,8 @@ def test_training_decreases_ae_loss_and_is_deterministic(getkey):
     assert float(jnp.mean(jnp.linalg.norm(rec - data, axis=-1))) < 0.5 * float(
         np.mean(np.linalg.norm(data - data.mean(0), axis=-1))
     )
-    prior2, log2 = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    sol2 = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    prior2, log2 = sol2.value, sol2.aux
     assert eqx.tree_equal(eqx.filter(prior, eqx.is_array), eqx.filter(prior2, eqx.is_array))
     np.testing.assert_array_equal(log.ae_loss, log2.ae_loss)
 
@@ -116,13 +120,16 @@ def test_checkpoint_resume_is_bitwise_identical(tmp_path, which):
     if which == "aegan_pose":
 
         def train(cfg, ckpt, key=5):
-            return dspp.train_pose_prior(_poses(), key=jr.PRNGKey(key), config=cfg,
-                                         checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            sol = dspp.train_pose_prior(_poses(), key=jr.PRNGKey(key), config=cfg,
+                                        checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            return sol.value, sol.aux
     else:
 
         def train(cfg, ckpt, key=5):
-            return dspp.train_geometry_gan(_shapes(), kind="shape", key=jr.PRNGKey(key), config=cfg,
-                                           checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            sol = dspp.train_geometry_gan(_shapes(), kind="shape", key=jr.PRNGKey(key),
+                                          config=cfg, checkpoint_dir=ckpt,
+                                          progress=False)  # fmt: skip
+            return sol.value, sol.aux
 
     full, log_full = train(_cfg(n_steps=20), None)
     half, _ = train(_cfg(n_steps=10), tmp_path)  # "interrupted" after step 10

@@ -256,13 +256,15 @@ def register_sscape_nrd(
 
     fit_config = FitConfig() if fit_config is None else fit_config
     nrd_config = NRDConfig() if nrd_config is None else nrd_config
-    fits = fit_sscape_batch(model, scans, tmpl, config=fit_config, progress=progress, throw=False)
+    fits = fit_sscape_batch(
+        model, scans, tmpl, config=fit_config, progress=progress, throw=False
+    ).value
     n = scans.points.shape[0]
     out = []
     for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
         r = nrd(jnp.asarray(fits.vertices[i]), tmpl, scan_i, config=nrd_config, throw=False)
-        out.append(np.asarray(r.vertices))
+        out.append(np.asarray(r.value.vertices))
     return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
 
 

@@ -15,13 +15,13 @@ from jaxtyping import Array, Float
 
 from .._geometry import vertex_normals
 from .._kinematics import Similarity
+from .._solution import RESULTS, Solution, _check
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
 from ..registration._template import RegistrationTemplate
 from ._fit import (
     _MM,
     FitConfig,
-    FitResult,
     _bounded,
     _correspondences,
     _lm_solve,
@@ -93,9 +93,10 @@ class DepthFitConfig:
 
 
 class DepthFit(eqx.Module):
-    """Result of [`bodyprior.sscape.fit_depth`][]: one shape, a pose per image (0 front, 1 back).
+    """The fitted body of [`bodyprior.sscape.fit_depth`][] (the `value` of its
+    [`bodyprior.Solution`][]): one shape, a pose per image (0 front, 1 back).
 
-    **Fields** (V vertices, J joints, K components, N = `max_rounds + 1`):
+    **Fields** (V vertices, J joints, K components):
 
     - `coeffs`: the shared shape coefficients, shape `(K,)`, standard deviations.
     - `poses`: per-image local joint rotations, axis-angle, shape `(2, J, 3)`.
@@ -106,14 +107,6 @@ class DepthFit(eqx.Module):
       multiply by `scale` for the subject's size.
     - `scale`: the shared global scale, shape `()`.
     - `init_vertices`: the meshes after stage 1 (mean shape, landmark poses), shape `(2, V, 3)`.
-    - `result`: a [`bodyprior.sscape.FitResult`][] (`max_passes_reached` = the joint stage used all
-      `max_rounds`; not an error).
-    - `stats`: dict: `data_term` `(N,)` (mm^2: sum over both images of the model -> scan truncated
-      quadratic plus `scan_weight` times the scan -> model one; after the start and after each
-      round, NaN after the last), `mean_distance_mm` `(N,)` (mean valid distance, both directions
-      and images), `rounds`, `converged`, `model_to_scan_mm` `(2,)`, `scan_to_model_mm` `(2,)`
-      (final mean valid distances per image), `valid_fraction` `(2,)` (scan points with a valid
-      model partner), `landmark_rms_mm` `(2,)`, `solver_steps`.
     """
 
     coeffs: Float[Array, " K"]
@@ -123,8 +116,6 @@ class DepthFit(eqx.Module):
     rest_vertices: Float[Array, "V 3"]
     scale: Float[Array, ""]
     init_vertices: Float[Array, "2 V 3"]
-    result: FitResult
-    stats: dict
 
 
 def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitConfig):
@@ -343,9 +334,8 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
     verts = meshes(u, poses, ts, ls)
     _, _, _, info = measure(u, poses, ts, ls)
     finite = jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs))
-    result = FitResult.where(done, FitResult.successful, FitResult.max_passes_reached)
-    result = FitResult.where(bad, FitResult.solver_failed, result)
-    result = FitResult.where(finite, result, FitResult.nonfinite)
+    result = RESULTS.where(bad, RESULTS.solver_failed, RESULTS.successful)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
     lm_err = jnp.linalg.norm(verts[:, st.lm_vertex] - lm_target, axis=-1) * _MM
     stats = {
         "data_term": hist,
@@ -356,9 +346,9 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
         "scan_to_model_mm": info["mean_s"],
         "valid_fraction": info["frac_s"],
         "landmark_rms_mm": jnp.sqrt(jnp.sum(lm_w * lm_err**2, -1) / n_lm),
-        "solver_steps": steps,
+        "num_steps": steps,
     }
-    return DepthFit(
+    fit = DepthFit(
         coeffs=coeffs,
         poses=poses,
         similarities=Similarity(R, ts, jnp.broadcast_to(ls, (2,))),
@@ -366,18 +356,13 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
         rest_vertices=shape_vertices(model, coeffs),
         scale=jnp.exp(ls),
         init_vertices=init_vertices,
-        result=result,
-        stats=stats,
     )
+    return Solution(fit, result, stats)
 
 
 @eqx.filter_jit
-def _fit_depth_jit(model, scans, st, pose0, cfg, throw):
-    fit = _fit_depth_kernel(model, scans, st, pose0, cfg)
-    if throw:
-        failed = (fit.result == FitResult.solver_failed) | (fit.result == FitResult.nonfinite)
-        fit = fit.result.error_if(fit, failed)
-    return fit
+def _fit_depth_jit(model, scans, st, pose0, cfg):
+    return _fit_depth_kernel(model, scans, st, pose0, cfg)
 
 
 def fit_depth(
@@ -388,7 +373,7 @@ def fit_depth(
     *,
     config: DepthFitConfig = DepthFitConfig(),
     throw: bool = True,
-) -> DepthFit:
+) -> Solution:
     """Fits one S-SCAPE shape and a pose per image to a front and a back depth scan.
 
     The procedure of the paper's §6 (after Helten et al. 2013; humanshape `fitPoseShapeJoint`,
@@ -427,9 +412,17 @@ def fit_depth(
       common point count if needed.
     - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `config`: a [`bodyprior.sscape.DepthFitConfig`][].
-    - `throw`: raise if a solve failed or the result is not finite; otherwise inspect `result`.
+    - `throw`: raise if a solve failed or the result is not finite (`result` not
+      `RESULTS.successful`); otherwise inspect `sol.result`. Using all `max_rounds` is not a
+      failure (`stats["converged"]` is False then; the rule is [`bodyprior.Solution`][]'s).
 
-    **Returns:** a [`bodyprior.sscape.DepthFit`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` a [`bodyprior.sscape.DepthFit`][]; `stats`
+    a dict (N = `max_rounds + 1`): `data_term` `(N,)` (mm^2: sum over both images of the model ->
+    scan truncated quadratic plus `scan_weight` times the scan -> model one; after the start and
+    after each round, NaN after the last), `mean_distance_mm` `(N,)` (mean valid distance, both
+    directions and images), `rounds`, `converged`, `model_to_scan_mm` `(2,)`, `scan_to_model_mm`
+    `(2,)` (final mean valid distances per image), `valid_fraction` `(2,)` (scan points with a
+    valid model partner), `landmark_rms_mm` `(2,)`, `num_steps` (total LM steps).
 
     **Raises:** `ValueError` (before tracing) for a wrong model/template/config, scans that are not
     `Scan`s, have different landmark names, NaN points, or fewer than 4 usable landmarks.
@@ -459,4 +452,5 @@ def fit_depth(
                 )
     scans = pad_scans([front_scan, back_scan])
     model, st, _, pose, _ = _prepare(model, scans, tmpl, config.fit, None, None, True)
-    return _fit_depth_jit(model, scans, st, pose, config, bool(throw))
+    sol = _fit_depth_jit(model, scans, st, pose, config)
+    return _check(sol, bool(throw), "depth fit")

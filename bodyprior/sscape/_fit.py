@@ -66,6 +66,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
+from .._solution import RESULTS, Solution, _check
 from .._validate import check_array, is_tracer
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
@@ -74,7 +75,6 @@ from ._model import SScapeModel, evaluate, shape_vertices
 
 __all__ = [
     "FitConfig",
-    "FitResult",
     "SScapeFit",
     "compatible_correspondences",
     "fit_similarity",
@@ -86,17 +86,6 @@ __all__ = [
 # data term, so these rotations are unobservable apart from hand landmarks).
 _HAND_WORDS = ("Hand", "Thumb", "Finger")
 _MM = 1000.0  # residuals are scaled to millimetres so that solver tolerances read in mm
-
-
-class FitResult(eqx.Enumeration):
-    """Outcome of an S-SCAPE fit (an `equinox.Enumeration`; compare with `==`)."""
-
-    successful = ""
-    max_passes_reached = (
-        "The data term was still changing after `max_passes` passes (the fit is usable)."
-    )
-    solver_failed = "A Levenberg-Marquardt solve failed (diverged or hit a singular system)."
-    nonfinite = "The fit produced NaN or infinite values."
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,9 +179,10 @@ class FitConfig:
 
 
 class SScapeFit(eqx.Module):
-    """Result of [`bodyprior.sscape.fit_sscape`][] (batched: every leaf has a leading scan axis).
+    """The fitted body of [`bodyprior.sscape.fit_sscape`][]: the `value` of its
+    [`bodyprior.Solution`][] (batched: every leaf has a leading scan axis).
 
-    **Fields** (V vertices, J joints, K components, N = `max_passes + 1`):
+    **Fields** (V vertices, J joints, K components):
 
     - `coeffs`: shape coefficients, shape `(K,)`, standard deviations, within `±coeff_bound`.
     - `pose`: local joint rotations, axis-angle, shape `(J, 3)`, radians.
@@ -200,11 +190,6 @@ class SScapeFit(eqx.Module):
     - `vertices`: fitted posed mesh in the scan frame, shape `(V, 3)`, metres;
       `similarity.apply(evaluate(model, coeffs, pose)[0])`.
     - `rest_vertices`: shaped, unposed mesh in the model frame, shape `(V, 3)`, metres.
-    - `result`: a [`bodyprior.sscape.FitResult`][].
-    - `stats`: dict of arrays: `data_term` `(N,)` (mm^2, after the landmark stage and after each
-      pass; NaN after the last pass), `mean_distance_mm` `(N,)` (mean over valid vertices),
-      `passes` (int), `converged` (bool), `final_mean_distance_mm`, `valid_fraction` (of the
-      non-hand vertices), `landmark_rms_mm` (present landmarks), `solver_steps` (total LM steps).
     """
 
     coeffs: Float[Array, " K"]
@@ -212,8 +197,6 @@ class SScapeFit(eqx.Module):
     similarity: Similarity
     vertices: Float[Array, "V 3"]
     rest_vertices: Float[Array, "V 3"]
-    result: FitResult
-    stats: dict
 
 
 # --------------------------------------------------------------------------------------------------
@@ -418,7 +401,8 @@ def _lm_solve(rtol: float, atol: float):
 
     Normal equations + Cholesky: the unknowns are few (~100) and the residuals many (~20k); XLA's
     CPU QR of a 20k x 100 Jacobian costs ~60x more than forming and factoring `JᵀJ` (float64; the
-    damping keeps it SPD). Running out of steps is not a failure (the passes iterate anyway)."""
+    damping keeps it SPD). Running out of steps is not a failure (an iteration budget: the passes
+    iterate anyway; `bodyprior._solution`)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
 
     def solve(fn, y0, args, steps):
@@ -444,7 +428,7 @@ def _fit_one(
     init_sim: Similarity | None,
     cfg: FitConfig,
     shape_residual: Callable | None,
-) -> SScapeFit:
+) -> Solution:
     dtype = model.mean.dtype
     faces = model.faces
     free = np.asarray(st.free, np.int32)
@@ -641,9 +625,8 @@ def _fit_one(
     finite = (
         jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs)) & jnp.all(jnp.isfinite(pose))
     )
-    result = FitResult.where(done, FitResult.successful, FitResult.max_passes_reached)
-    result = FitResult.where(bad, FitResult.solver_failed, result)
-    result = FitResult.where(finite, result, FitResult.nonfinite)
+    result = RESULTS.where(bad, RESULTS.solver_failed, RESULTS.successful)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
     _, w = corr
     stats = {
         "data_term": hist,
@@ -653,21 +636,14 @@ def _fit_one(
         "final_mean_distance_mm": dhist[passes],
         "valid_fraction": jnp.sum(w) / n_elig,
         "landmark_rms_mm": jnp.sqrt(jnp.sum(lm_w * lm_err**2) / n_lm),
-        "solver_steps": steps,
+        "num_steps": steps,
     }
-    return SScapeFit(coeffs, pose, sim, verts, rest, result, stats)
-
-
-def _failed(result) -> Bool[Array, ""]:
-    return (result == FitResult.solver_failed) | (result == FitResult.nonfinite)
+    return Solution(SScapeFit(coeffs, pose, sim, verts, rest), result, stats)
 
 
 @eqx.filter_jit
-def _fit_single(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual, throw):
-    fit = _fit_one(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual)
-    if throw:
-        fit = fit.result.error_if(fit, _failed(fit.result))
-    return fit
+def _fit_single(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual):
+    return _fit_one(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual)
 
 
 def _fit_kernel(replicated, item):
@@ -773,8 +749,12 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
         pose = jnp.zeros((*lead, J, 3), dtype)
         sim = None
     else:
+        if isinstance(init, Solution):
+            init = init.value
         if not isinstance(init, SScapeFit):
-            raise ValueError(f"`init` must be an SScapeFit or None, got {type(init).__name__}.")
+            raise ValueError(
+                f"`init` must be an SScapeFit (or its Solution) or None, got {type(init).__name__}."
+            )
         pose = jnp.asarray(check_array(init.pose, "init.pose", (*lead, J, 3)), dtype)
         c = check_array(init.coeffs, "init.coeffs", (*lead, None))
         c = jnp.asarray(c, dtype)[..., :K]
@@ -809,9 +789,9 @@ def fit_sscape(
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
-    init: SScapeFit | None = None,
+    init: SScapeFit | Solution | None = None,
     throw: bool = True,
-) -> SScapeFit:
+) -> Solution:
     """Fits an S-SCAPE space to one scan: similarity, pose from landmarks, then alternating pose
     and shape fits to compatible nearest neighbours (see the module docstring; sscape.md §2).
 
@@ -829,19 +809,26 @@ def fit_sscape(
     - `shape_residual`: optional `rest_vertices (V, 3) -> (R,)` residual vector added (unscaled)
       to the shape solves, whose data part is in millimetres (objective in mm^2). Must be
       jittable; an `eqx.Module` or a plain function.
-    - `init`: optional previous [`bodyprior.sscape.SScapeFit`][] to start from (its similarity,
-      pose and coefficients, truncated or zero-padded to this model's K); the landmark pose stage
-      still runs, starting from it.
-    - `throw`: raise if the fit failed (`FitResult.solver_failed` or `nonfinite`); otherwise
-      inspect `fit.result`. `max_passes_reached` is not an error.
+    - `init`: optional previous [`bodyprior.sscape.SScapeFit`][] (or its `Solution`) to start
+      from (its similarity, pose and coefficients, truncated or zero-padded to this model's K);
+      the landmark pose stage still runs, starting from it.
+    - `throw`: raise if the fit failed (`result` not `RESULTS.successful`: `solver_failed` or
+      `nonfinite`); otherwise inspect `sol.result`. Using all `max_passes` is not a failure
+      (`stats["converged"]` is False then; the rule is [`bodyprior.Solution`][]'s).
 
-    **Returns:** an [`bodyprior.sscape.SScapeFit`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` an [`bodyprior.sscape.SScapeFit`][];
+    `result` a [`bodyprior.RESULTS`][]; `stats` a dict of arrays (N = `max_passes + 1`):
+    `data_term` `(N,)` (mm^2, after the landmark stage and after each pass; NaN after the last
+    pass), `mean_distance_mm` `(N,)` (mean over valid vertices), `passes` (int), `converged`
+    (bool: the pass loop met its stopping test), `final_mean_distance_mm`, `valid_fraction` (of
+    the non-hand vertices), `landmark_rms_mm` (present landmarks), `num_steps` (total LM steps).
 
     **Raises:** `ValueError` (before tracing) for a wrong model/template/scan/config, a model whose
     vertex count or faces differ from the template's, fewer than 4 usable landmarks, or NaN points.
     """
     model, st, coeffs, pose, sim = _prepare(model, scan, tmpl, config, shape_residual, init, False)
-    return _fit_single(model, scan, st, coeffs, pose, sim, config, shape_residual, bool(throw))
+    sol = _fit_single(model, scan, st, coeffs, pose, sim, config, shape_residual)
+    return _check(sol, bool(throw), "S-SCAPE fit")
 
 
 def fit_sscape_batch(
@@ -851,13 +838,13 @@ def fit_sscape_batch(
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
-    init: SScapeFit | None = None,
+    init: SScapeFit | Solution | None = None,
     devices=None,
     chunk_size: int | None = None,
     progress: bool = True,
     strategy: str | None = None,
     throw: bool = True,
-) -> SScapeFit:
+) -> Solution:
     """Fits many scans: `vmap` of the single-scan fit, spread over devices, in chunks.
 
     The scans (padded to a common point count, `point_mask` False on padding; see
@@ -871,21 +858,22 @@ def fit_sscape_batch(
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus
 
     - `scans`: a batched [`bodyprior.registration.Scan`][] (leading axis B).
-    - `init`: optional batched `SScapeFit` (leading axis B).
+    - `init`: optional batched `SScapeFit` or its `Solution` (leading axis B).
     - `devices`: devices to shard over (default: all of `jax.devices()`).
     - `chunk_size`: scans per jitted call, rounded up to a multiple of the device count (default:
       4 per device, at most B rounded up).
     - `progress`: show a progress bar.
     - `strategy`: `"spmd"`, `"per_device"` or `None` (by platform); see `batch_map`.
-    - `throw`: raise a `RuntimeError` naming the failed scans (after all chunks ran).
+    - `throw`: raise naming the failed scans (after all chunks ran); with `False` inspect the
+      per-scan `sol.result` (shape `(B,)`).
 
-    **Returns:** a batched [`bodyprior.sscape.SScapeFit`][] (leading axis B, NumPy-backed leaves on
-    the host).
+    **Returns:** a batched [`bodyprior.Solution`][] (every leaf, `result` included, with a leading
+    axis B; NumPy-backed leaves on the host).
     """
     from ..registration._shard import batch_map
 
     model, st, coeffs, pose, sim = _prepare(model, scans, tmpl, config, shape_residual, init, True)
-    fits = batch_map(
+    sol = batch_map(
         _fit_kernel,
         (model, st, config, shape_residual),
         (scans, coeffs, pose, sim),
@@ -895,13 +883,4 @@ def fit_sscape_batch(
         desc="fitting S-SCAPE",
         strategy=strategy,
     )
-    if throw:
-        failed = np.flatnonzero(np.asarray(_failed(fits.result)))
-        if failed.size:
-            first = int(failed[0])
-            msg = FitResult[jax.tree_util.tree_map(lambda x: x[first], fits.result)]
-            raise RuntimeError(
-                f"S-SCAPE fit failed for {failed.size} scan(s) (indices {failed[:20].tolist()}): "
-                f"{msg} Pass throw=False to inspect `fit.result`."
-            )
-    return fits
+    return _check(sol, bool(throw), "S-SCAPE fit")
