@@ -25,6 +25,7 @@ from ._fit import (
     _bounded,
     _correspondences,
     _lm_solve,
+    _pass_loop,
     _prepare,
     _umeyama_masked,
 )
@@ -301,35 +302,23 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
     u0 = jnp.zeros((K,), dtype)
     init_vertices = meshes(u0, poses0, ts0, ls0)
     corr0, term0, mean0, _ = measure(u0, poses0, ts0, ls0)
-    nan = jnp.full((cfg.max_rounds + 1,), jnp.nan, dtype)
 
-    def cond(s):
-        i, *_, done, bad, _ = s
-        return (i < cfg.max_rounds) & ~done & ~bad
-
-    def body(s):
-        i, u, poses, ts, ls, corr, hist, dhist, done, bad, steps = s
+    def step(params, corr):
+        u, poses, ts, ls = params
         if cfg.joint:
-            u, poses, ts, ls, bad2, k2 = joint_solve(u, poses, ts, ls, corr)
-            bad1, k1 = jnp.asarray(False), jnp.asarray(0)
+            u, poses, ts, ls, bad, k = joint_solve(u, poses, ts, ls, corr)
         else:
             poses, ts, bad1, k1 = pose_solve(_bounded(u, b), poses, ts, ls, corr)
             corr, _, _, _ = measure(u, poses, ts, ls)
             u, ls, bad2, k2 = shape_solve(u, poses, ts, ls, corr)
-        corr, term, mean_d, _ = measure(u, poses, ts, ls)
-        prev, prev_d = hist[i], dhist[i]
-        done = (jnp.abs(prev - term) <= cfg.rtol * prev) | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
-        bad = bad | jnp.any(bad1) | bad2 | ~jnp.isfinite(term)
-        hist, dhist = hist.at[i + 1].set(term), dhist.at[i + 1].set(mean_d)
-        return i + 1, u, poses, ts, ls, corr, hist, dhist, done, bad, steps + jnp.sum(k1) + k2
+            bad, k = jnp.any(bad1) | bad2, jnp.sum(k1) + k2
+        return (u, poses, ts, ls), bad, k
 
-    state = (
-        jnp.asarray(0), u0, poses0, ts0, ls0, corr0, nan.at[0].set(term0), nan.at[0].set(mean0),
-        jnp.asarray(False), jnp.any(bad0) | ~jnp.isfinite(term0), jnp.sum(steps0),
+    rounds, (u, poses, ts, ls), corr, hist, dhist, done, bad, steps = _pass_loop(
+        step, lambda p: measure(*p)[:3], (u0, poses0, ts0, ls0), corr0, term0, mean0,
+        jnp.any(bad0), jnp.sum(steps0), max_passes=cfg.max_rounds, rtol=cfg.rtol,
+        atol_mm=cfg.atol_mm, undo_worse=False, dtype=dtype,
     )  # fmt: skip
-    rounds, u, poses, ts, ls, corr, hist, dhist, done, bad, steps = jax.lax.while_loop(
-        cond, body, state
-    )
     coeffs = _bounded(u, b)
     verts = meshes(u, poses, ts, ls)
     _, _, _, info = measure(u, poses, ts, ls)

@@ -415,6 +415,80 @@ def _lm_solve(rtol: float, atol: float):
     return solve
 
 
+def _pass_loop(
+    step: Callable,
+    measure: Callable,
+    params0,
+    corr0,
+    term0: Float[Array, ""],
+    mean0: Float[Array, ""],
+    bad0: Bool[Array, ""],
+    steps0: Int[Array, ""],
+    *,
+    max_passes: int,
+    rtol: float,
+    atol_mm: float,
+    undo_worse: bool,
+    dtype,
+):
+    """The pass loop shared by the S-SCAPE fit and the depth fit (a `lax.while_loop`).
+
+    Each pass runs `step(params, corr) -> (params, failed, n_steps)` (the pass's Levenberg-Marquardt
+    solves for fixed correspondences) and then `measure(params) -> (corr, data_term, mean_mm)`
+    (new correspondences and the data term they give). The loop stops when the data term changes
+    by at most `rtol` (relative) or the mean distance by at most `atol_mm`, after `max_passes`
+    passes, or when a solve failed or the data term is not finite. With `undo_worse`, a pass that
+    raised the data term is undone (parameters and correspondences) and ends the loop, so the
+    recorded data term never increases.
+
+    **Returns:** `(passes, params, corr, data_term (N,), mean_distance_mm (N,), converged,
+    failed, n_steps)` with `N = max_passes + 1` (entry 0: `term0`; NaN after the last pass).
+    """
+    nan = jnp.full((max_passes + 1,), jnp.nan, dtype)
+
+    def cond(state):
+        i, *_, done, bad, _ = state
+        return (i < max_passes) & ~done & ~bad
+
+    def body(state):
+        i, params, corr, hist, dhist, done, bad, steps = state
+        new, bad_step, n = step(params, corr)
+        new_corr, term, mean_d = measure(new)
+        prev, prev_d = hist[i], dhist[i]
+        if undo_worse:
+            # A pass that raised the data term (re-gated correspondences, the point-to-plane
+            # blend) is undone and ends the loop: the recorded data term never increases.
+            worse = term > prev
+            new, new_corr = jax.tree_util.tree_map(
+                lambda a, b_: jnp.where(worse, a, b_), (params, corr), (new, new_corr)
+            )
+            term, mean_d = jnp.where(worse, prev, term), jnp.where(worse, prev_d, mean_d)
+            done = worse
+        else:
+            done = False
+        done = (
+            done
+            | (jnp.abs(prev - term) <= rtol * prev)
+            | (jnp.abs(prev_d - mean_d) <= atol_mm)
+        )
+        bad = bad | bad_step | ~jnp.isfinite(term)
+        hist = hist.at[i + 1].set(term)
+        dhist = dhist.at[i + 1].set(mean_d)
+        return i + 1, new, new_corr, hist, dhist, done, bad, steps + n
+
+    state = (
+        jnp.asarray(0),
+        params0,
+        corr0,
+        nan.at[0].set(term0),
+        nan.at[0].set(mean0),
+        jnp.asarray(False),
+        bad0 | ~jnp.isfinite(term0),
+        jnp.asarray(steps0),
+    )
+    return jax.lax.while_loop(cond, body, state)
+
+
 def _unbounded(c, b):
     return b * jnp.arctanh(jnp.clip(c / b, -0.999, 0.999))
 
@@ -557,22 +631,14 @@ def _fit_one(
     )
     corr1, term1, mean1 = correspond(mesh(_bounded(u0, b), pose1, t1, ls1))
 
-    n_hist = cfg.max_passes + 1
-    nan = jnp.full((n_hist,), jnp.nan, dtype)
     w_lm = cfg.landmark_weight if cfg.landmark_weight > 0 else None
 
-    def cond(state):
-        i, *_, done, bad, _ = state
-        return (i < cfg.max_passes) & ~done & ~bad
-
-    def body(state):
-        i, pose, t, ls, u, corr, hist, dhist, done, bad, steps = state
-        old = (u, pose, t, ls, corr)
+    def step(params, corr):
+        u, pose, t, ls = params
         if cfg.schedule == "joint":
-            u, pose, t, ls, bad1, n1 = stage(
+            u, pose, t, ls, bad, n = stage(
                 True, True, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
             )
-            bad2, n2 = False, 0
         else:
             u, pose, t, ls, bad1, n1 = stage(
                 True, False, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
@@ -581,41 +647,18 @@ def _fit_one(
             u, pose, t, ls, bad2, n2 = stage(
                 False, True, w_lm, True, cfg.shape_steps, u, pose, t, ls, corr
             )
-        corr, term, mean_d = correspond(mesh(_bounded(u, b), pose, t, ls))
-        prev, prev_d = hist[i], dhist[i]
-        # A pass that raised the data term (re-gated correspondences, the point-to-plane blend) is
-        # undone and ends the loop: the recorded data term never increases.
-        worse = term > prev
-        u, pose, t, ls, corr = jax.tree_util.tree_map(
-            lambda a, b_: jnp.where(worse, a, b_), old, (u, pose, t, ls, corr)
-        )
-        term, mean_d = jnp.where(worse, prev, term), jnp.where(worse, prev_d, mean_d)
-        done = (
-            worse
-            | (jnp.abs(prev - term) <= cfg.rtol * prev)
-            | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
-        )
-        bad = bad | bad1 | bad2 | ~jnp.isfinite(term)
-        hist = hist.at[i + 1].set(term)
-        dhist = dhist.at[i + 1].set(mean_d)
-        return i + 1, pose, t, ls, u, corr, hist, dhist, done, bad, steps + n1 + n2
+            bad, n = bad1 | bad2, n1 + n2
+        return (u, pose, t, ls), bad, n
 
-    state = (
-        jnp.asarray(0),
-        pose1,
-        t1,
-        ls1,
-        u0,
-        corr1,
-        nan.at[0].set(term1),
-        nan.at[0].set(mean1),
-        jnp.asarray(False),
-        bad0 | ~jnp.isfinite(term1),
-        jnp.asarray(steps0),
-    )
-    passes, pose, t, ls, u, corr, hist, dhist, done, bad, steps = jax.lax.while_loop(
-        cond, body, state
-    )
+    def measure(params):
+        u, pose, t, ls = params
+        return correspond(mesh(_bounded(u, b), pose, t, ls))
+
+    passes, (u, pose, t, ls), corr, hist, dhist, done, bad, steps = _pass_loop(
+        step, measure, (u0, pose1, t1, ls1), corr1, term1, mean1, bad0, steps0,
+        max_passes=cfg.max_passes, rtol=cfg.rtol, atol_mm=cfg.atol_mm, undo_worse=True,
+        dtype=dtype,
+    )  # fmt: skip
 
     coeffs = _bounded(u, b)
     sim = Similarity(R0, t, ls)
