@@ -46,12 +46,13 @@ def main():
     args = ap.parse_args()
     tmpl = registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    pop = bp.sample_population(jax.random.PRNGKey(0), 28, body=body, progress=False)
+    pop = bp.sample_population(28, body=body, progress=False, key=jax.random.PRNGKey(0))
     gt = np.asarray(tmpl.restrict(pop.vertices), np.float64)
     model = sscape.learn(jnp.asarray(gt[:24]), tmpl.faces, n_components=20, **tmpl.rig_kwargs())
     scans, _ = registration.simulate_scans(
-        jax.random.PRNGKey(5), np.asarray(pop.vertices[24:28]), body.faces, body.landmark_index,
+        np.asarray(pop.vertices[24:28]), body.faces, body.landmark_index,
         body.landmark_names, registration.ScannerConfig(n_points=6449), progress=False,
+        key=jax.random.PRNGKey(5),
     )  # fmt: skip
     cfg = _fit.FitConfig(max_passes=3, landmark_weight=0.3, pose_prior=100.0)
     take = lambda i: jax.tree_util.tree_map(lambda a: a[i], scans)  # noqa: E731

@@ -56,18 +56,17 @@ def _block(x):
 def make_problem(seed: int, decimated: bool, n_points: int, n_scans: int = 1):
     tmpl = bp.registration.registration_template(decimated=decimated)
     body = bp.load_default_body()
-    pop = bp.sample_population(jr.PRNGKey(seed), n_scans, progress=False)
+    pop = bp.sample_population(n_scans, progress=False, key=jr.PRNGKey(seed))
     cfg = bp.registration.ScannerConfig(n_points=n_points)
     scans, truths = [], []
     for i in range(n_scans):
         v = pop.vertices[i]
         scan, _ = bp.registration.simulate_scan(
-            jr.PRNGKey(seed + 100 + i),
             v,
             body.faces,
             v[body.landmark_index],
             body.landmark_names,
-            cfg,
+            cfg, key=jr.PRNGKey(seed + 100 + i),
         )
         scans.append(scan)
         truths.append(np.asarray(tmpl.restrict(v)))
@@ -327,12 +326,12 @@ def main():
 
     # bodyprior
     t = time.perf_counter()
-    out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
+    out = _block(bp.registration.nrd(init, scan, tmpl, config=cfg))
     first = time.perf_counter() - t
     times = []
     for _ in range(args.repeats):
         t = time.perf_counter()
-        out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
+        out = _block(bp.registration.nrd(init, scan, tmpl, config=cfg))
         times.append(time.perf_counter() - t)
     n = int(out.stats["rounds"])
     res["bodyprior_s"] = float(np.median(times))
@@ -385,7 +384,7 @@ def main():
         s = args.seed + 10 + i
         tmpl_i, (scan_i,), (truth_i,), (init_i,) = make_problem(s, False, args.n_points)
         t = time.perf_counter()
-        o = _block(bp.registration.nrd(init_i, tmpl_i, scan_i, config=cfg))
+        o = _block(bp.registration.nrd(init_i, scan_i, tmpl_i, config=cfg))
         t_bp = time.perf_counter() - t
         peer_i = Peer(tmpl_i, scan_i, init_i, cfg)
         peer_i.run(3)
@@ -436,7 +435,7 @@ def main():
 
     # solver alternatives on the last round's system, started from the previous round's solution
     cfg_prev = eqx.tree_at(lambda c: c.max_rounds, cfg, max(cfg.n_data_rounds - 1, 1))
-    prev = _block(bp.registration.nrd(init, tmpl, scan, config=cfg_prev))
+    prev = _block(bp.registration.nrd(init, scan, tmpl, config=cfg_prev))
     centre = init.mean(0)
     Xp = _internal_X(prev, init, centre)
     idx, valid = peer.corr(Xp)
@@ -450,12 +449,12 @@ def main():
     batch = bp.registration.pad_scans(scans)
     init_b = jnp.stack(inits)
     t = time.perf_counter()
-    ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+    ob = _block(bp.registration.nrd_batch(init_b, batch, tmpl_d, config=cfg))
     first = time.perf_counter() - t
     bt = []
     for _ in range(max(1, args.repeats - 1)):
         t = time.perf_counter()
-        ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+        ob = _block(bp.registration.nrd_batch(init_b, batch, tmpl_d, config=cfg))
         bt.append(time.perf_counter() - t)
     res["batch"] = dict(
         n_vertices=int(tmpl_d.n_vertices),
@@ -467,9 +466,9 @@ def main():
             gt_error_mm(ob.value.vertices[i], truths[i], tmpl_d) for i in range(args.batch)
         ],
     )
-    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], scans[0], tmpl_d, config=cfg))
     t = time.perf_counter()
-    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], scans[0], tmpl_d, config=cfg))
     res["batch"]["single_scan_s"] = time.perf_counter() - t
     print("batch", res["batch"], flush=True)
     res["machine"]["load_average_end"] = os.getloadavg()

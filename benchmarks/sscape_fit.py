@@ -52,19 +52,20 @@ def main():
     cfg = FitConfig()
     tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    pop0 = bp.sample_population(jr.PRNGKey(args.seed), args.n_train, body=body, progress=False)
+    pop0 = bp.sample_population(args.n_train, body=body, progress=False, key=jr.PRNGKey(args.seed))
     model = bp.sscape.learn(
         tmpl.restrict(pop0.vertices), tmpl.faces, n_components=args.components, **tmpl.rig_kwargs()
     )
-    pop1 = bp.sample_population(jr.PRNGKey(args.seed + 1), args.batch, body=body, progress=False)
+    pop1 = bp.sample_population(
+        args.batch, body=body, progress=False, key=jr.PRNGKey(args.seed + 1)
+    )
     scans, _ = simulate_scans(
-        jr.PRNGKey(args.seed + 2),
         pop1.vertices,
         body.faces,
         body.landmark_index,
         body.landmark_names,
         ScannerConfig(n_points=args.n_points),
-        progress=False,
+        progress=False, key=jr.PRNGKey(args.seed + 2),
     )
     truth = np.asarray(tmpl.restrict(pop1.vertices))
     hand = np.asarray(tmpl.hand_mask)

@@ -171,7 +171,7 @@ def main(argv=None) -> dict:
     k_pop, k_noise, k_prior = jax.random.split(key, 3)
     body = bp.load_default_body("cmu_mb")
     vertex_map, faces = bp.load_decimated()
-    pop = bp.sample_population(k_pop, n_train + n_val + n_test, progress=progress)
+    pop = bp.sample_population(n_train + n_val + n_test, progress=progress, key=k_pop)
     verts = np.asarray(pop.vertices, np.float64)[:, vertex_map]
     del pop
     train, val, test = np.split(verts, [n_train, n_train + n_val])

@@ -127,7 +127,7 @@ def _rest_error(fit_rest, scale, true_rest):
 
 def _subjects(key, body, tmpl, n, n_points, progress):
     """Test subjects: true rest/posed meshes and their front/back depth scans."""
-    pool = bp.sample_population(key, max(4 * n, 8), body=body, progress=False)
+    pool = bp.sample_population(max(4 * n, 8), body=body, progress=False, key=key)
     sex = np.asarray(pool.sex)
     males, females = np.flatnonzero(sex == 0), np.flatnonzero(sex == 1)
     pick = []
@@ -143,7 +143,7 @@ def _subjects(key, body, tmpl, n, n_points, progress):
     out = []
     for s, i in enumerate(tqdm(pick, desc="depth captures", disable=not progress)):
         kp, ks = jr.split(jr.fold_in(key, 1000 + s))
-        poses = capture_poses(kp, body.joint_names, rest_joints, 2)
+        poses = capture_poses(body.joint_names, rest_joints, 2, key=kp)
         lc = pool.local_changes[i]
         rest, _ = bp.rest_shape(body, pool.phenotypes[i], lc)
         subj = dict(index=i, sex=int(sex[i]), rest=np.asarray(tmpl.restrict(rest), np.float64),
@@ -152,8 +152,8 @@ def _subjects(key, body, tmpl, n, n_points, progress):
             v, _ = bp.evaluate(body, pool.phenotypes[i], jnp.asarray(poses[k]), local_changes=lc)
             v = np.asarray(v, np.float64)
             scan, _, depth = simulate_depth_scan(
-                jr.fold_in(ks, k), v, faces, cam, v[lm_index], body.landmark_names,
-                n_points=n_points,
+                v, faces, cam, v[lm_index], body.landmark_names,
+                n_points=n_points, key=jr.fold_in(ks, k),
             )  # fmt: skip
             subj["posed"].append(np.asarray(tmpl.restrict(v)))
             subj["scans"].append(scan)
@@ -164,7 +164,7 @@ def _subjects(key, body, tmpl, n, n_points, progress):
 
 def _spaces(key, body, tmpl, st: Setting, progress):
     """(name, norm, n_train, model with max components) for every training set and normalization."""
-    train = bp.sample_population(key, st.n_train, body=body, progress=progress)
+    train = bp.sample_population(st.n_train, body=body, progress=progress, key=key)
     meshes = np.asarray(tmpl.restrict(train.vertices), np.float64)
     poses = np.asarray(train.poses, np.float64)
     kmax = max(st.components)
@@ -178,8 +178,8 @@ def _spaces(key, body, tmpl, st: Setting, progress):
             times[f"{norm}_{n}"] = time.perf_counter() - t0
             spaces.append((norm, n, model))
     if st.baseline:
-        base = bp.sample_population(jr.fold_in(key, 7), st.baseline, body=body, scheme="anny",
-                                    progress=False)  # fmt: skip
+        base = bp.sample_population(st.baseline, body=body, scheme="anny",
+                                    progress=False, key=jr.fold_in(key, 7))  # fmt: skip
         bm = np.asarray(tmpl.restrict(base.vertices), np.float64)
         k = min(kmax, st.baseline - 1)
         spaces.append(("baseline", st.baseline, learn(jnp.asarray(bm), tmpl.faces, n_components=k,

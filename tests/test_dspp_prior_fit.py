@@ -39,7 +39,7 @@ def setup():
     cfg = dspp.DSPPConfig(latent_dim=4, noise_dim=4, ae_hidden=(16,), generator_hidden=(8,),
                           discriminator_hidden=(8,))  # fmt: skip
     scale = float(np.sqrt(np.mean((meshes - meshes.mean(0)) ** 2)))
-    prior = dspp.init_aegan("shape", meshes.mean(0), scale, cfg, jax.random.PRNGKey(1))
+    prior = dspp.init_aegan("shape", meshes.mean(0), scale, cfg, key=jax.random.PRNGKey(1))
     return dict(meshes=meshes, model=model, prior=prior, idx=np.arange(0, V, 3, dtype=np.int32))
 
 
@@ -171,7 +171,8 @@ def test_experiment_quick(tmp_path):
     cfg = dspp.DSPPConfig(latent_dim=8, noise_dim=8, ae_hidden=(16,), generator_hidden=(16,),
                           discriminator_hidden=(16,))  # fmt: skip
     prior_path = tmp_path / "prior.eqx"
-    dspp.save_prior(prior_path, dspp.init_aegan("shape", mean, 0.05, cfg, jax.random.PRNGKey(0)))
+    prior = dspp.init_aegan("shape", mean, 0.05, cfg, key=jax.random.PRNGKey(0))
+    dspp.save_prior(prior_path, prior)
     out = tmp_path / "out"
     m = mod.main(["--quick", "--out", str(out), "--no-progress", "--n-train", "16", "--n-val", "2",
                   "--n-test", "2", "--n-components", "4", "--max-steps", "8",

@@ -56,7 +56,7 @@ def _true_body(verts: np.ndarray) -> np.ndarray:
 
 
 def _scan(key, verts, faces, tmpl, lm_sigma=0.003, n=N_POINTS):
-    pts, fi, _ = bp.sample_surface(key, verts, faces, n)
+    pts, fi, _ = bp.sample_surface(verts, faces, n, key=key)
     normals = bp.face_normals(verts, faces)[fi]
     kn, kl = jr.split(key)
     pts = pts + 0.0005 * jr.normal(kn, pts.shape)
@@ -88,7 +88,7 @@ def setup():
     truth = _true_body(np.asarray(tmpl.vertices))
     scan = _scan(jr.PRNGKey(0), truth, np.asarray(tmpl.faces), tmpl)
     init = _aligned_template(tmpl, scan)
-    out = _nrd.nrd(init, tmpl, scan, config=CFG)
+    out = _nrd.nrd(init, scan, tmpl, config=CFG)
     return tmpl, truth, scan, init, out
 
 
@@ -149,7 +149,7 @@ def test_identity_when_scan_is_template(setup, monkeypatch):
         landmark_mask=jnp.ones(len(tmpl.landmark_names), bool),
         landmark_names=tmpl.landmark_names,
     )
-    out = _nrd.nrd(v, tmpl, scan, config=CFG)
+    out = _nrd.nrd(v, scan, tmpl, config=CFG)
     assert not traces  # another scan of the same shapes: the compiled schedule is reused
     eye = np.broadcast_to(np.eye(3, 4), (n_v, 3, 4))
     np.testing.assert_allclose(np.asarray(out.value.transforms), eye, atol=1e-9)
@@ -300,7 +300,7 @@ def test_variants(setup):
     c = truth.mean(0)
     good = jnp.asarray(c + (truth - c) * np.array([1.03, 1.03, 1.0]) + np.array([0.005, 0, 0]))
     both = _nrd.nrd_batch(
-        jnp.stack([init, good]), tmpl, jax.tree.map(lambda x: jnp.stack([x, x]), scan), config=CFG
+        jnp.stack([init, good]), jax.tree.map(lambda x: jnp.stack([x, x]), scan), tmpl, config=CFG
     )
     assert both.value.vertices.shape == (2,) + init.shape
     # the same scan and start as the single call; the iterative solves agree to their tolerance,
@@ -314,7 +314,7 @@ def test_variants(setup):
     assert e_good < 0.6 * _gt_mm(out.value.vertices, truth)[body].mean()
     # NRD CW: constant weights, stops when the mean distance converges; fits less closely
     cw = _nrd.nrd(
-        init, tmpl, scan, config=_nrd.NRDConfig(n_patches=16, constant_weights=True, max_rounds=4)
+        init, scan, tmpl, config=_nrd.NRDConfig(n_patches=16, constant_weights=True, max_rounds=4)
     )
     n = int(cw.stats["rounds"])
     assert np.all(np.asarray(cw.stats["smooth_weight"])[:n] == 1e6)
@@ -333,19 +333,19 @@ def _replace(scan, **fields):
 def test_bad_inputs(setup):
     tmpl, truth, scan, init, out = setup
     with pytest.raises(ValueError, match="init_vertices"):
-        _nrd.nrd(init[:-1], tmpl, scan)
+        _nrd.nrd(init[:-1], scan, tmpl)
     with pytest.raises(ValueError, match="init_vertices.*NaN"):
-        _nrd.nrd(init.at[0, 0].set(jnp.nan), tmpl, scan)
-    with pytest.raises(ValueError, match="tmpl"):
-        _nrd.nrd(init, "template", scan)
+        _nrd.nrd(init.at[0, 0].set(jnp.nan), scan, tmpl)
+    with pytest.raises(ValueError, match="template"):
+        _nrd.nrd(init, scan, "template")
     with pytest.raises(ValueError, match="Scan"):
-        _nrd.nrd(init, tmpl, {"points": scan.points})
+        _nrd.nrd(init, {"points": scan.points}, tmpl)
     with pytest.raises(ValueError, match="millimetres"):
-        _nrd.nrd(init, tmpl, _replace(scan, points=scan.points * 1000))
+        _nrd.nrd(init, _replace(scan, points=scan.points * 1000), tmpl)
     with pytest.raises(ValueError, match="empty"):
-        _nrd.nrd(init, tmpl, _replace(scan, point_mask=scan.point_mask & False))
+        _nrd.nrd(init, _replace(scan, point_mask=scan.point_mask & False), tmpl)
     with pytest.raises(ValueError, match="batch"):
-        _nrd.nrd_batch(init[None], tmpl, scan)
+        _nrd.nrd_batch(init[None], scan, tmpl)
     with pytest.raises(ValueError, match="smooth_weight"):
         _nrd.NRDConfig(smooth_weight=-1.0)
     with pytest.raises(ValueError, match="constant_weights"):
@@ -353,4 +353,4 @@ def test_bad_inputs(setup):
     with pytest.raises(ValueError, match="max_angle_deg"):
         _nrd.NRDConfig(max_angle_deg=0.0)
     with pytest.raises(ValueError, match="config"):
-        _nrd.nrd(init, tmpl, scan, config={"decay": 0.5})
+        _nrd.nrd(init, scan, tmpl, config={"decay": 0.5})

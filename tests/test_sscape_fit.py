@@ -70,7 +70,7 @@ def _transform_scan(scan: Scan, sim: bp.Similarity) -> Scan:
 def _sampled_scan(key, verts, faces, tmpl, missing=(3, 10, 40)):
     """Points sampled uniformly on a template-topology mesh, 1 mm noise, 5 mm landmark noise."""
     k1, k2, k3 = jr.split(key, 3)
-    pts, fidx, _ = bp.sample_surface(k1, verts, faces, N_POINTS)
+    pts, fidx, _ = bp.sample_surface(verts, faces, N_POINTS, key=k1)
     normals = bp.face_normals(verts, faces)[fidx]
     pts = pts + 0.001 * jr.normal(k2, pts.shape)
     lm = verts[tmpl.landmark_index] + 0.005 * jr.normal(k3, (len(tmpl.landmark_names), 3))
@@ -84,7 +84,7 @@ def _sampled_scan(key, verts, faces, tmpl, missing=(3, 10, 40)):
 def setup():
     tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    pop0 = bp.sample_population(jr.PRNGKey(0), 24, body=body, progress=False)
+    pop0 = bp.sample_population(24, body=body, progress=False, key=jr.PRNGKey(0))
     model = bp.sscape.learn(
         tmpl.restrict(pop0.vertices), tmpl.faces, n_components=8, **tmpl.rig_kwargs()
     )
@@ -110,7 +110,7 @@ def setup():
 
     # Scan 1: a new body (another population seed) in a known, changed pose, scanned by the virtual
     # laser scanner (holes, estimated normals, outliers), then moved by the similarity.
-    pop1 = bp.sample_population(jr.PRNGKey(1), 1, body=body, progress=False)
+    pop1 = bp.sample_population(1, body=body, progress=False, key=jr.PRNGKey(1))
     pose1 = np.asarray(pop1.poses[0]).copy()
     pose1[names.index("RightArm")] += [0.0, 0.0, -0.25]
     pose1[names.index("LeftLeg")] += [0.2, 0.0, 0.0]
@@ -118,12 +118,11 @@ def setup():
         body, pop1.phenotypes[0], jnp.asarray(pose1), local_changes=pop1.local_changes[0]
     )
     scan1, _ = simulate_scan(
-        jr.PRNGKey(4),
         full,
         body.faces,
         full[body.landmark_index],
         body.landmark_names,
-        ScannerConfig(n_points=N_POINTS),
+        ScannerConfig(n_points=N_POINTS), key=jr.PRNGKey(4),
     )
     scan1 = _transform_scan(scan1, sim)
     gt1 = sim.apply(tmpl.restrict(full))
@@ -305,11 +304,11 @@ def test_input_validation(setup):
     small = bp.sscape.learn(
         jr.normal(jr.PRNGKey(0), (3, 10, 3)), jnp.array([[0, 1, 2]]), n_components=1
     )
-    with pytest.raises(ValueError, match="10 vertices but `tmpl` has 6449"):
+    with pytest.raises(ValueError, match="10 vertices but `template` has 6449"):
         fit_sscape(small, scan, tmpl)
     with pytest.raises(ValueError, match="`model` must be an SScapeModel"):
         fit_sscape(tmpl, scan, tmpl)
-    with pytest.raises(ValueError, match="`tmpl` must be a RegistrationTemplate"):
+    with pytest.raises(ValueError, match="`template` must be a RegistrationTemplate"):
         fit_sscape(model, scan, model)
     with pytest.raises(ValueError, match="`config` must be a FitConfig"):
         fit_sscape(model, scan, tmpl, config={"max_passes": 3})

@@ -223,9 +223,9 @@ def _raw_key(key) -> Array:
 def _init_state(kind: str, model_kind: str, mean, scale, cfg: DSPPConfig, key) -> _TrainState:
     k_init, k_train = jr.split(key)
     if model_kind == "aegan":
-        model = init_aegan(kind, mean, scale, cfg, k_init)
+        model = init_aegan(kind, mean, scale, cfg, key=k_init)
     else:
-        model = init_geometry_gan(kind, mean, scale, cfg, k_init)
+        model = init_geometry_gan(kind, mean, scale, cfg, key=k_init)
     adam = _adam(cfg)
     opt_ae = adam.init(_params((model.encoder, model.decoder))) if model_kind == "aegan" else None
     return _TrainState(

@@ -730,19 +730,21 @@ def _scan_arrays(scan, batched: bool):
     return arrays
 
 
-def _landmark_map(tmpl: RegistrationTemplate, names) -> tuple[Array, Array]:
+def _landmark_map(template: RegistrationTemplate, names) -> tuple[Array, Array]:
     """Template vertex of each scan landmark (by name) and whether it may be used."""
-    where = {n: i for i, n in enumerate(tmpl.landmark_names)}
-    lm_idx = np.asarray(tmpl.landmark_index)
-    hand = np.asarray(tmpl.hand_mask, bool)
+    where = {n: i for i, n in enumerate(template.landmark_names)}
+    lm_idx = np.asarray(template.landmark_index)
+    hand = np.asarray(template.hand_mask, bool)
     v = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int32)
     use = np.array([n in where for n in names], bool) & ~hand[v]  # γ = 0 on hand vertices
     return jnp.asarray(v), jnp.asarray(use)
 
 
-def _check_inputs(init_vertices, tmpl, config, batched: bool):
-    if not isinstance(tmpl, RegistrationTemplate):
-        raise ValueError(f"`tmpl` must be a RegistrationTemplate, got {type(tmpl).__name__}.")
+def _check_inputs(init_vertices, template, config, batched: bool):
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
+        )
     if not isinstance(config, NRDConfig):
         raise ValueError(f"`config` must be an NRDConfig, got {type(config).__name__}.")
     if not jax.config.jax_enable_x64:
@@ -751,7 +753,7 @@ def _check_inputs(init_vertices, tmpl, config, batched: bool):
             "`jax.config.update('jax_enable_x64', True)`."
         )
     lead = ("B",) if batched else ()
-    init = check_array(init_vertices, "init_vertices", (*lead, tmpl.n_vertices, 3))
+    init = check_array(init_vertices, "init_vertices", (*lead, template.n_vertices, 3))
     return jnp.asarray(init, jnp.float64)
 
 
@@ -763,8 +765,8 @@ def _dtype_cast(init, arrays):
 
 def nrd(
     init_vertices: Float[Array, "V 3"],
-    tmpl: RegistrationTemplate,
     scan,
+    template: RegistrationTemplate,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
@@ -778,12 +780,13 @@ def nrd(
     **Arguments:**
 
     - `init_vertices`: the template mesh to deform, shape `(V, 3)`, metres, in the scan frame and
-      in correspondence with `tmpl` (`V = tmpl.n_vertices`). "NRD": the static template aligned to
-      the scan by the landmark similarity (`fit_similarity(...).apply(tmpl.vertices)`); "S-SCAPE +
-      NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks, hand/head masks).
+      in correspondence with `template` (`V = template.n_vertices`). "NRD": the static template
+      aligned to the scan by the landmark similarity
+      (`fit_similarity(...).apply(template.vertices)`); "S-SCAPE + NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
     - `scan`: a [`bodyprior.registration.Scan`][] (points, unit normals, masks, landmarks in metres);
       landmarks are matched to the template's by name, missing ones are ignored.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks,
+      hand/head masks).
     - `config`: an [`bodyprior.registration.NRDConfig`][]; `NRDConfig(constant_weights=True)` is NRD CW.
     - `throw`: raise if the result is not `RESULTS.successful`: a round's linear solve hit
       `cg_max_steps` without reaching `cg_rtol` (`max_steps_reached`), or non-finite vertices
@@ -803,18 +806,18 @@ def nrd(
     **Raises:** `ValueError` for inputs of the wrong shape/type, non-finite values, or a scan
     without valid points.
     """
-    init = _check_inputs(init_vertices, tmpl, config, batched=False)
+    init = _check_inputs(init_vertices, template, config, batched=False)
     arrays = _scan_arrays(scan, batched=False)
-    lm_v, lm_use = _landmark_map(tmpl, scan.landmark_names)
-    prep = _prepare(tmpl, config.n_patches)
+    lm_v, lm_use = _landmark_map(template, scan.landmark_names)
+    prep = _prepare(template, config.n_patches)
     sol = _nrd_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
     return _check(sol, bool(throw), "NRD")
 
 
 def nrd_batch(
     init_vertices: Float[Array, "B V 3"],
-    tmpl: RegistrationTemplate,
     scans,
+    template: RegistrationTemplate,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
@@ -828,14 +831,14 @@ def nrd_batch(
     one per scan). With `throw=True` it raises once, naming the failed scans; with `False`, one
     failed scan leaves the others' results usable.
     """
-    init = _check_inputs(init_vertices, tmpl, config, batched=True)
+    init = _check_inputs(init_vertices, template, config, batched=True)
     arrays = _scan_arrays(scans, batched=True)
     if arrays[0].shape[0] != init.shape[0]:
         raise ValueError(
             f"`init_vertices` has {init.shape[0]} meshes but `scans` has "
             f"{arrays[0].shape[0]} scans."
         )
-    lm_v, lm_use = _landmark_map(tmpl, scans.landmark_names)
-    prep = _prepare(tmpl, config.n_patches)
+    lm_v, lm_use = _landmark_map(template, scans.landmark_names)
+    prep = _prepare(template, config.n_patches)
     sol = _nrd_batch_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
     return _check(sol, bool(throw), "NRD")

@@ -358,7 +358,7 @@ def fit_depth(
     model: SScapeModel,
     front_scan: Scan,
     back_scan: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: DepthFitConfig = DepthFitConfig(),
     throw: bool = True,
@@ -394,12 +394,12 @@ def fit_depth(
 
     **Arguments:**
 
-    - `model`: an [`bodyprior.sscape.SScapeModel`][] on `tmpl`'s topology.
+    - `model`: an [`bodyprior.sscape.SScapeModel`][] on `template`'s topology.
     - `front_scan`, `back_scan`: one [`bodyprior.registration.Scan`][] each (e.g. from
       [`bodyprior.registration.depth_to_scan`][]), world frame, metres, normals facing their camera, each
-      with at least 4 landmarks known to `tmpl` (the paper placed 14 by hand). They are padded to a
-      common point count if needed.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][].
+      with at least 4 landmarks known to `template` (the paper placed 14 by hand). They are padded
+      to a common point count if needed.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `config`: a [`bodyprior.sscape.DepthFitConfig`][].
     - `throw`: raise if a solve failed or the result is not finite (`result` not
       `RESULTS.successful`); otherwise inspect `sol.result`. Using all `max_rounds` is not a
@@ -430,8 +430,8 @@ def fit_depth(
         check_scan(sc, min_points=1, name=name)
     if front_scan.landmark_names != back_scan.landmark_names:
         raise ValueError("`front_scan` and `back_scan` must have the same `landmark_names`.")
-    if isinstance(tmpl, RegistrationTemplate):
-        known = np.array([n in tmpl.landmark_names for n in front_scan.landmark_names], bool)
+    if isinstance(template, RegistrationTemplate):
+        known = np.array([n in template.landmark_names for n in front_scan.landmark_names], bool)
         for name, sc in (("front_scan", front_scan), ("back_scan", back_scan)):
             count = int((np.asarray(sc.landmark_mask, bool).reshape(-1) & known).sum())
             if count < 4:
@@ -440,6 +440,6 @@ def fit_depth(
                     f"(the paper placed 14 by hand on each depth image), got {count}."
                 )
     scans = pad_scans([front_scan, back_scan])
-    model, st, _, pose, _ = _prepare(model, scans, tmpl, config.fit, None, None, True)
+    model, st, _, pose, _ = _prepare(model, scans, template, config.fit, None, None, True)
     sol = _fit_depth_jit(model, scans, st, pose, config)
     return _check(sol, bool(throw), "depth fit")

@@ -713,11 +713,13 @@ def _check_scan_fields(scan: Scan, batched: bool):
     return dims
 
 
-def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
+def _prepare(model, scan, template, config, shape_residual, init, batched: bool):
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
-    if not isinstance(tmpl, RegistrationTemplate):
-        raise ValueError(f"`tmpl` must be a RegistrationTemplate, got {type(tmpl).__name__}.")
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
+        )
     if not isinstance(config, FitConfig):
         raise ValueError(f"`config` must be a FitConfig, got {type(config).__name__}.")
     if not isinstance(scan, Scan):
@@ -727,15 +729,15 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
             f"`shape_residual` must be a callable (rest_vertices (V, 3)) -> (R,) or None, got "
             f"{type(shape_residual).__name__}."
         )
-    if model.n_vertices != tmpl.n_vertices:
+    if model.n_vertices != template.n_vertices:
         raise ValueError(
-            f"`model` has {model.n_vertices} vertices but `tmpl` has {tmpl.n_vertices}: the model "
-            "must be learned on the template's topology (`tmpl.restrict(...)`)."
+            f"`model` has {model.n_vertices} vertices but `template` has {template.n_vertices}: the "
+            "model must be learned on the template's topology (`template.restrict(...)`)."
         )
-    if tuple(model.faces.shape) != tuple(tmpl.faces.shape):
+    if tuple(model.faces.shape) != tuple(template.faces.shape):
         raise ValueError(
-            f"`model.faces` has shape {tuple(model.faces.shape)} but `tmpl.faces` has "
-            f"{tuple(tmpl.faces.shape)}: model and template must share the topology."
+            f"`model.faces` has shape {tuple(model.faces.shape)} but `template.faces` has "
+            f"{tuple(template.faces.shape)}: model and template must share the topology."
         )
     if not jax.config.jax_enable_x64:
         raise ValueError(
@@ -746,8 +748,8 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
 
     # Landmark names -> template vertices (host side; names are static).
     names = tuple(scan.landmark_names)
-    tpos = {n: i for i, n in enumerate(tmpl.landmark_names)}
-    lm_index = np.asarray(tmpl.landmark_index)
+    tpos = {n: i for i, n in enumerate(template.landmark_names)}
+    lm_index = np.asarray(template.landmark_index)
     known = np.array([n in tpos for n in names], bool)
     vertex = np.array([lm_index[tpos[n]] if n in tpos else 0 for n in names], np.int32)
     if not is_tracer(scan.landmark_mask):
@@ -776,9 +778,9 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
     if not free:
         raise ValueError("`config.frozen_joints` freezes every joint; at least one must be free.")
     exclude = (
-        np.asarray(tmpl.hand_mask, bool)
+        np.asarray(template.hand_mask, bool)
         if config.exclude_hands
-        else np.zeros(tmpl.n_vertices, bool)
+        else np.zeros(template.n_vertices, bool)
     )
     st = _Static(jnp.asarray(vertex), jnp.asarray(known), jnp.asarray(exclude), free)
     model = _as_float64(model)
@@ -828,7 +830,7 @@ def _as_float64(tree):
 def fit_sscape(
     model: SScapeModel,
     scan: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
@@ -844,10 +846,12 @@ def fit_sscape(
     **Arguments:**
 
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on the template's topology (e.g.
-      `learn(tmpl.restrict(pop.vertices), tmpl.faces, n_components=K, **tmpl.rig_kwargs())`).
+      `learn(template.restrict(pop.vertices), template.faces, n_components=K,
+      **template.rig_kwargs())`).
     - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks must be
-      named in `tmpl.landmark_names`.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand mask).
+      named in `template.landmark_names`.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand
+      mask).
     - `config`: a [`bodyprior.sscape.FitConfig`][].
     - `shape_residual`: optional `rest_vertices (V, 3) -> (R,)` residual vector added (unscaled)
       to the shape solves, whose data part is in millimetres (objective in mm^2). Must be
@@ -869,7 +873,9 @@ def fit_sscape(
     **Raises:** `ValueError` (before tracing) for a wrong model/template/scan/config, a model whose
     vertex count or faces differ from the template's, fewer than 4 usable landmarks, or NaN points.
     """
-    model, st, coeffs, pose, sim = _prepare(model, scan, tmpl, config, shape_residual, init, False)
+    model, st, coeffs, pose, sim = _prepare(
+        model, scan, template, config, shape_residual, init, False
+    )
     sol = _fit_single(model, scan, st, coeffs, pose, sim, config, shape_residual)
     return _check(sol, bool(throw), "S-SCAPE fit")
 
@@ -877,7 +883,7 @@ def fit_sscape(
 def fit_sscape_batch(
     model: SScapeModel,
     scans: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
@@ -915,7 +921,9 @@ def fit_sscape_batch(
     """
     from ..registration._shard import batch_map
 
-    model, st, coeffs, pose, sim = _prepare(model, scans, tmpl, config, shape_residual, init, True)
+    model, st, coeffs, pose, sim = _prepare(
+        model, scans, template, config, shape_residual, init, True
+    )
     sol = batch_map(
         _fit_kernel,
         (model, st, config, shape_residual),
