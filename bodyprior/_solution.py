@@ -45,7 +45,7 @@ class RESULTS(optx.RESULTS):  # pyright: ignore
     items below. An `equinox.Enumeration`: compare with `==`, read the message with
     `RESULTS[result]`, promote an optimistix result with `RESULTS.promote(sol.result)`."""
 
-    solver_failed = "A Levenberg-Marquardt solve inside the fit failed (diverged or singular)."
+    solver_failed = "A Levenberg-Marquardt solve failed (diverged or hit a singular system)."
     nonfinite_loss = (
         "Training stopped at a non-finite loss; lower `learning_rate` or check the data."
     )

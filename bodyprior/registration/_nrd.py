@@ -38,10 +38,10 @@ area-weighted vertex normals):
   nearest point lies on a facing surface (e.g. the torso beside an arm);
 - head vertices (humanshape `getNNheadAndBody`): a plane through three template vertices on the
   neck boundary of the `Head` bone's region, carried along with the deformation, splits template
-  and scan. Head vertices above it (within `tmpl.head_mask`) take the closest scan point above
+  and scan. Head vertices above it (within `template.head_mask`) take the closest scan point above
   the plane within `head_max_dist_mm` (50 mm) whose displacement lies in a `head_cone_deg` (30°)
   cone around the outward vertex normal: the head can only be pushed outwards (hair, caps, holes);
-- hand vertices (`tmpl.hand_mask`): `α = γ = 0` (paper §4.1); smoothness only.
+- hand vertices (`template.hand_mask`): `α = γ = 0` (paper §4.1); smoothness only.
 
 Both are exact radius searches on a uniform grid of the scan points built once per call (sorted
 cell keys; the candidate runs of all queries processed in fixed-size chunks, so the work is the

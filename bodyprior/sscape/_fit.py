@@ -19,7 +19,7 @@ normals are within `max_angle_deg` (60 degrees); unlike humanshape, the search r
 compatible* point over the whole cloud (a masked argmin, not "the nearest point, dropped if its
 normal disagrees"), so a vertex next to a thin structure seen from the other side still finds the
 right surface. Pairs farther than `max_dist` (humanshape has no gate at this stage; NRD uses 50 mm)
-and hand vertices (`tmpl.hand_mask`, "do not register open to closed hands") are invalid.
+and hand vertices (`template.hand_mask`, "do not register open to closed hands") are invalid.
 
 Objective (units chosen so that the numbers read as millimetres): with `d_i` the distance of vertex
 `i` to its compatible scan point and `E` the non-hand vertices,
@@ -120,7 +120,7 @@ class FitConfig:
     - `landmark_steps`, `pose_steps`, `shape_steps`: Levenberg-Marquardt step limits per solve.
     - `solver_rtol`, `solver_atol`: Levenberg-Marquardt tolerances (parameters in m/rad, objective
       in mm^2).
-    - `exclude_hands`: exclude `tmpl.hand_mask` vertices from the data term (True, humanshape).
+    - `exclude_hands`: exclude `template.hand_mask` vertices from the data term (True, humanshape).
     """
 
     max_passes: int = 10
@@ -304,7 +304,7 @@ def compatible_correspondences(
     - `scan`: a [`bodyprior.registration.Scan`][] (one scan).
     - `max_dist`: distance gate, metres (default 0.05).
     - `max_angle_deg`: normal compatibility angle, degrees (default 60).
-    - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `tmpl.hand_mask`).
+    - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `template.hand_mask`).
 
     **Returns:** `(idx, weight)`: `(V,)` int32 index into `scan.points` (0 for invalid pairs) and
     `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
