@@ -69,8 +69,8 @@ def main(argv=None) -> int:
     vmap_idx, _ = bp.load_decimated()
     mean_shape = np.asarray(body.template)[vmap_idx]
     cfg = DSPPConfig()
-    shape = init_aegan("shape", mean_shape, 0.05, cfg, jr.PRNGKey(0))
-    pose = init_aegan("pose", np.zeros((20, 3)), 0.3, cfg, jr.PRNGKey(1))
+    shape = init_aegan("shape", mean_shape, 0.05, cfg, key=jr.PRNGKey(0))
+    pose = init_aegan("pose", np.zeros((20, 3)), 0.3, cfg, key=jr.PRNGKey(1))
     out: dict = {
         "mode": "quick" if args.quick else "full",
         "config": cfg.to_dict(),

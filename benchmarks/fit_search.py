@@ -55,14 +55,17 @@ def main(argv=None):
     n_train, n_comp, n_scans = (12, 8, 3) if args.quick else (24, 20, 4)
     tmpl = registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    pop = bp.sample_population(jax.random.PRNGKey(0), n_train + n_scans, body=body, progress=False)
+    pop = bp.sample_population(
+        n_train + n_scans, body=body, progress=False, key=jax.random.PRNGKey(0)
+    )
     gt = np.asarray(tmpl.restrict(pop.vertices), np.float64)
     model = sscape.learn(
         jnp.asarray(gt[:n_train]), tmpl.faces, n_components=n_comp, **tmpl.rig_kwargs()
     )
     scans, _ = registration.simulate_scans(
-        jax.random.PRNGKey(5), np.asarray(pop.vertices[n_train:]), body.faces, body.landmark_index,
+        np.asarray(pop.vertices[n_train:]), body.faces, body.landmark_index,
         body.landmark_names, registration.ScannerConfig(n_points=6449), progress=False,
+        key=jax.random.PRNGKey(5),
     )  # fmt: skip
     cfg = sscape.FitConfig(max_passes=3, landmark_weight=0.3, pose_prior=100.0)
     take = lambda i: jax.tree_util.tree_map(lambda a: a[i], scans)  # noqa: E731
@@ -78,7 +81,7 @@ def main(argv=None):
                 t = time.perf_counter()
                 r = jax.block_until_ready(sscape.fit_sscape(model, take(i), tmpl, config=cfg))
                 ts.append(time.perf_counter() - t)
-                e = np.linalg.norm(np.asarray(r.vertices) - gt[n_train + i], axis=1)
+                e = np.linalg.norm(np.asarray(r.value.vertices) - gt[n_train + i], axis=1)
                 errs.append(float(1000 * e.mean()))
         res[name] = dict(first_s=first, per_scan_s=ts, median_s=float(np.median(ts)),
                          gt_error_mm=errs)  # fmt: skip

@@ -61,18 +61,17 @@ def _block(x):
 def make_problem(seed: int, decimated: bool, n_points: int, n_scans: int = 1):
     tmpl = bp.registration.registration_template(decimated=decimated)
     body = bp.load_default_body()
-    pop = bp.sample_population(jr.PRNGKey(seed), n_scans, progress=False)
+    pop = bp.sample_population(n_scans, progress=False, key=jr.PRNGKey(seed))
     cfg = bp.registration.ScannerConfig(n_points=n_points)
     scans, truths = [], []
     for i in range(n_scans):
         v = pop.vertices[i]
         scan, _ = bp.registration.simulate_scan(
-            jr.PRNGKey(seed + 100 + i),
             v,
             body.faces,
             v[body.landmark_index],
             body.landmark_names,
-            cfg,
+            cfg, key=jr.PRNGKey(seed + 100 + i),
         )
         scans.append(scan)
         truths.append(np.asarray(tmpl.restrict(v)))
@@ -340,22 +339,22 @@ def main(argv=None):
 
     # bodyprior
     t = time.perf_counter()
-    out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
+    out = _block(bp.registration.nrd(init, scan, tmpl, config=cfg))
     first = time.perf_counter() - t
     times = []
     for _ in range(args.repeats):
         t = time.perf_counter()
-        out = _block(bp.registration.nrd(init, tmpl, scan, config=cfg))
+        out = _block(bp.registration.nrd(init, scan, tmpl, config=cfg))
         times.append(time.perf_counter() - t)
-    n = int(out.n_rounds)
+    n = int(out.stats["rounds"])
     res["bodyprior_s"] = float(np.median(times))
     res["bodyprior_times_s"] = times
     res["compile_s"] = first - res["bodyprior_s"]
-    res["bodyprior_energy"] = float(out.energy[n - 1])
-    res["bodyprior_round_energies"] = np.asarray(out.energy)[:n].tolist()
-    res["bodyprior_mean_distance_mm"] = np.asarray(out.mean_distance_mm)[1:n].tolist()
-    res["bodyprior_cg_steps"] = np.asarray(out.cg_steps)[:n].tolist()
-    res["bodyprior_gt_error_mm"] = gt_error_mm(out.vertices, truth, tmpl)
+    res["bodyprior_energy"] = float(out.stats["energy"][n - 1])
+    res["bodyprior_round_energies"] = np.asarray(out.stats["energy"])[:n].tolist()
+    res["bodyprior_mean_distance_mm"] = np.asarray(out.stats["mean_distance_mm"])[1:n].tolist()
+    res["bodyprior_cg_steps"] = np.asarray(out.stats["cg_steps"])[:n].tolist()
+    res["bodyprior_gt_error_mm"] = gt_error_mm(out.value.vertices, truth, tmpl)
     print(
         "bodyprior",
         res["bodyprior_s"],
@@ -398,7 +397,7 @@ def main(argv=None):
         s = args.seed + 10 + i
         tmpl_i, (scan_i,), (truth_i,), (init_i,) = make_problem(s, decimated, args.n_points)
         t = time.perf_counter()
-        o = _block(bp.registration.nrd(init_i, tmpl_i, scan_i, config=cfg))
+        o = _block(bp.registration.nrd(init_i, scan_i, tmpl_i, config=cfg))
         t_bp = time.perf_counter() - t
         peer_i = Peer(tmpl_i, scan_i, init_i, cfg)
         peer_i.run(3)
@@ -411,9 +410,9 @@ def main(argv=None):
                 bodyprior_s=t_bp,
                 lbfgsb_s=t_lb,
                 speedup=t_lb / t_bp,
-                bodyprior_energy=float(o.energy[int(o.n_rounds) - 1]),
+                bodyprior_energy=float(o.stats["energy"][int(o.stats["rounds"]) - 1]),
                 lbfgsb_energy=energies[-1],
-                bodyprior_gt_error_mm=gt_error_mm(o.vertices, truth_i, tmpl_i)["all"],
+                bodyprior_gt_error_mm=gt_error_mm(o.value.vertices, truth_i, tmpl_i)["all"],
                 lbfgsb_gt_error_mm=gt_error_mm(y, truth_i, tmpl_i)["all"],
             )
         )
@@ -438,7 +437,7 @@ def main(argv=None):
         print("all scans", res["all_scans"], flush=True)
 
     # the time per round spent on correspondences (shared by both sides)
-    X = jnp.swapaxes(out.transforms, 1, 2)  # unused values; only the timing matters
+    X = jnp.swapaxes(out.value.transforms, 1, 2)  # unused values; only the timing matters
     Xid = jnp.broadcast_to(jnp.eye(4, 3), (tmpl.n_vertices, 4, 3))
     _block(peer.corr(Xid))
     t = time.perf_counter()
@@ -449,7 +448,7 @@ def main(argv=None):
 
     # solver alternatives on the last round's system, started from the previous round's solution
     cfg_prev = eqx.tree_at(lambda c: c.max_rounds, cfg, max(cfg.n_data_rounds - 1, 1))
-    prev = _block(bp.registration.nrd(init, tmpl, scan, config=cfg_prev))
+    prev = _block(bp.registration.nrd(init, scan, tmpl, config=cfg_prev))
     centre = init.mean(0)
     Xp = _internal_X(prev, init, centre)
     idx, valid = peer.corr(Xp)
@@ -463,12 +462,12 @@ def main(argv=None):
     batch = bp.registration.pad_scans(scans)
     init_b = jnp.stack(inits)
     t = time.perf_counter()
-    ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+    ob = _block(bp.registration.nrd_batch(init_b, batch, tmpl_d, config=cfg))
     first = time.perf_counter() - t
     bt = []
     for _ in range(max(1, args.repeats - 1)):
         t = time.perf_counter()
-        ob = _block(bp.registration.nrd_batch(init_b, tmpl_d, batch, config=cfg))
+        ob = _block(bp.registration.nrd_batch(init_b, batch, tmpl_d, config=cfg))
         bt.append(time.perf_counter() - t)
     res["batch"] = dict(
         n_vertices=int(tmpl_d.n_vertices),
@@ -476,11 +475,13 @@ def main(argv=None):
         seconds=float(np.median(bt)),
         compile_s=first - float(np.median(bt)),
         scans_per_minute=60 * args.batch / float(np.median(bt)),
-        gt_error_mm=[gt_error_mm(ob.vertices[i], truths[i], tmpl_d) for i in range(args.batch)],
+        gt_error_mm=[
+            gt_error_mm(ob.value.vertices[i], truths[i], tmpl_d) for i in range(args.batch)
+        ],
     )
-    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], scans[0], tmpl_d, config=cfg))
     t = time.perf_counter()
-    _block(bp.registration.nrd(inits[0], tmpl_d, scans[0], config=cfg))
+    _block(bp.registration.nrd(inits[0], scans[0], tmpl_d, config=cfg))
     res["batch"]["single_scan_s"] = time.perf_counter() - t
     print("batch", res["batch"], flush=True)
     res["machine"]["load_average_end"] = os.getloadavg()
@@ -490,7 +491,7 @@ def main(argv=None):
 
 def _internal_X(out, init, centre):
     """The solver's variables `X = (A_i)ᵀ` (centred mm frame) of a result's transforms."""
-    A = out.transforms
+    A = out.value.transforms
     lin = A[:, :, :3]
     t = (A[:, :, 3] - centre + jnp.einsum("vij,j->vi", lin, centre)) * 1000
     return jnp.swapaxes(jnp.concatenate([lin, t[:, :, None]], 2), 1, 2)

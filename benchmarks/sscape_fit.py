@@ -59,19 +59,20 @@ def main(argv=None):
     cfg = FitConfig()
     tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
-    pop0 = bp.sample_population(jr.PRNGKey(args.seed), args.n_train, body=body, progress=False)
+    pop0 = bp.sample_population(args.n_train, body=body, progress=False, key=jr.PRNGKey(args.seed))
     model = bp.sscape.learn(
         tmpl.restrict(pop0.vertices), tmpl.faces, n_components=args.components, **tmpl.rig_kwargs()
     )
-    pop1 = bp.sample_population(jr.PRNGKey(args.seed + 1), args.batch, body=body, progress=False)
+    pop1 = bp.sample_population(
+        args.batch, body=body, progress=False, key=jr.PRNGKey(args.seed + 1)
+    )
     scans, _ = simulate_scans(
-        jr.PRNGKey(args.seed + 2),
         pop1.vertices,
         body.faces,
         body.landmark_index,
         body.landmark_names,
         ScannerConfig(n_points=args.n_points),
-        progress=False,
+        progress=False, key=jr.PRNGKey(args.seed + 2),
     )
     truth = np.asarray(tmpl.restrict(pop1.vertices))
     hand = np.asarray(tmpl.hand_mask)
@@ -82,7 +83,7 @@ def main(argv=None):
     for _ in range(args.repeats + 1):
         t = time.perf_counter()
         fit = fit_sscape(model, one, tmpl, config=cfg)
-        jax.block_until_ready(fit.vertices)
+        jax.block_until_ready(fit.value.vertices)
         times.append(time.perf_counter() - t)
     single_s = float(np.median(times[1:]))
     out = {
@@ -96,7 +97,7 @@ def main(argv=None):
         "single_compile_s": float(times[0] - single_s),
         "single_scans_per_min": 60.0 / single_s,
         "single_passes": int(fit.stats["passes"]),
-        "single_solver_steps": int(fit.stats["solver_steps"]),
+        "single_solver_steps": int(fit.stats["num_steps"]),
     }
 
     def batched(devices, key):
@@ -122,9 +123,10 @@ def main(argv=None):
     fits = batched([jax.devices()[0]], "batch_1dev")
     if len(jax.devices()) > 1:
         fits_sh = batched(jax.devices(), f"batch_{len(jax.devices())}dev")
-        out["sharded_max_diff_m"] = float(np.abs(fits_sh.vertices - fits.vertices).max())
+        diff = np.abs(fits_sh.value.vertices - fits.value.vertices)
+        out["sharded_max_diff_m"] = float(diff.max())
 
-    err = 1000 * np.linalg.norm(np.asarray(fits.vertices) - truth, axis=-1)
+    err = 1000 * np.linalg.norm(np.asarray(fits.value.vertices) - truth, axis=-1)
     out.update(
         gt_error_mm_mean=float(err.mean()),
         gt_error_mm_mean_no_hands=float(err[:, ~hand].mean()),

@@ -111,6 +111,7 @@ from ._rotations import (
     rotation_to_matrix as rotation_to_matrix,
     sixd_to_matrix as sixd_to_matrix,
 )
+from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._skinning import (
     dense_weights_to_topk as dense_weights_to_topk,
     dqs as dqs,

@@ -441,7 +441,7 @@ def barycentric_points(
 
 
 def sample_surface(
-    key: PRNGKeyArray, vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], n: int
+    vertices: Float[ArrayLike, "V 3"], faces: Int[ArrayLike, "F 3"], n: int, *, key: PRNGKeyArray
 ) -> tuple[Float[Array, "n 3"], Int[Array, " n"], Float[Array, "n 3"]]:
     """Samples `n` points uniformly (area-weighted) on the surface.
 

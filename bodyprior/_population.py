@@ -93,7 +93,7 @@ def _beta_cond(key, age, sex, dist):
     return jnp.where(sex == 0, out[0], out[1])
 
 
-def sample_phenotypes(key, n: int, *, scheme: str = "caesar", age_range=(18.0, 65.0)):
+def sample_phenotypes(n: int, *, key, scheme: str = "caesar", age_range=(18.0, 65.0)):
     """Phenotype vectors `(n, 11)`, ages in years `(n,)` and sexes `(n,)` from the documented
     distribution."""
     a = load_asset()
@@ -131,7 +131,7 @@ def sample_phenotypes(key, n: int, *, scheme: str = "caesar", age_range=(18.0, 6
 
 
 def standing_pose_jitter(
-    key, body: DefaultBody, n: int, scale_deg: float = 4.0
+    body: DefaultBody, n: int, scale_deg: float = 4.0, *, key
 ) -> Float[Array, "n J 3"]:
     """Random axis-angle jitter `(n, J, 3)` around the template posture: N(0, (scale_deg * s_j)^2)
     per axis
@@ -151,9 +151,9 @@ def _eval_chunk(body, phen, local, poses):
 
 
 def sample_population(
-    key,
     n: int,
     *,
+    key,
     body: DefaultBody | None = None,
     scheme: str = "caesar",
     age_range: tuple[float, float] = (18.0, 65.0),
@@ -189,11 +189,11 @@ def sample_population(
     if body is None:
         body = load_default_body("cmu_mb", local_changes=True)
     kp, kl, kj = jr.split(key, 3)
-    phen, years, sex = sample_phenotypes(kp, n, scheme=scheme, age_range=age_range)
+    phen, years, sex = sample_phenotypes(n, scheme=scheme, age_range=age_range, key=kp)
     phen = phen.astype(body.template.dtype)
     C = 0 if body.local_basis is None else len(body.local_labels)
     local = jnp.clip(local_sigma * jr.normal(kl, (n, C)), -1.0, 1.0).astype(body.template.dtype)
-    poses = standing_pose_jitter(kj, body, n, pose_jitter_deg).astype(body.template.dtype)
+    poses = standing_pose_jitter(body, n, pose_jitter_deg, key=kj).astype(body.template.dtype)
 
     chunk = int(min(chunk, n))
     pad = (-n) % chunk

@@ -61,11 +61,8 @@ def _cmd_sample(args) -> int:
     t0 = time.time()
     body = load_default_body("cmu_mb", local_changes=not args.no_local_changes)
     pop = sample_population(
-        jax.random.PRNGKey(args.seed),
-        args.n,
-        body=body,
-        scheme=args.scheme,
-        pose_jitter_deg=args.jitter,
+        args.n, body=body, scheme=args.scheme, pose_jitter_deg=args.jitter,
+        key=jax.random.PRNGKey(args.seed),
     )
     verts = np.asarray(pop.vertices)
     faces = np.asarray(body.faces)

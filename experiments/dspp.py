@@ -83,7 +83,7 @@ def _log(msg: str) -> None:
 
 def _shape_data(seed: int, n: int, progress: bool):
     vertex_map, faces = bp.load_decimated()
-    pop = bp.sample_population(jr.PRNGKey(seed), n, progress=progress)
+    pop = bp.sample_population(n, progress=progress, key=jr.PRNGKey(seed))
     x = np.asarray(pop.vertices[:, np.asarray(vertex_map)], np.float32)
     perm = np.random.default_rng(seed).permutation(n)
     n_test = max(2, int(round(0.2 * n)))
@@ -174,7 +174,8 @@ def run(args) -> dict:
     )  # fmt: skip
     for name, job in jobs:
         t = time.perf_counter()
-        models[name], logs[name] = job()
+        sol = job()
+        models[name], logs[name] = sol.value, sol.aux
         timings[f"train_{name}_s"] = time.perf_counter() - t
         log = logs[name]
         metrics[f"train_steps_{name}"] = log.n_steps
@@ -202,7 +203,7 @@ def run(args) -> dict:
         pca_fits[domain] = pca
         gens = {"aegan": models[f"aegan_{domain}"], "geomgan": models[f"geomgan_{domain}"], **pcas}
         for j, (m, model) in enumerate(gens.items()):
-            samples[domain][m] = np.asarray(dspp.sample(model, keys[6 * i + j], n_eval))
+            samples[domain][m] = np.asarray(dspp.sample(model, n_eval, key=keys[6 * i + j]))
         # Real training items as a "generator" (reference row); disjoint from the items that the
         # specificity is measured against.
         perm = rng.permutation(xtr.shape[0])

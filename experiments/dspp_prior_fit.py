@@ -46,7 +46,6 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import optimistix as optx  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 import bodyprior as bp  # noqa: E402
@@ -112,7 +111,7 @@ def _fit_space_batch(model, idx, targets, sigma: float, coeff_weight, reg, max_s
             model, idx, t, noise_sigma=sigma, coeff_weight=coeff_weight, regulariser=reg,
             max_steps=max_steps, throw=False,
         )  # fmt: skip
-        return f.vertices, f.result == optx.RESULTS.successful, f.num_steps
+        return f.value.vertices, f.result == bp.RESULTS.successful, f.stats["num_steps"]
 
     return jax.lax.map(one, targets, batch_size=min(FIT_BATCH, targets.shape[0]))
 
@@ -124,7 +123,7 @@ def _fit_latent_batch(prior, idx, targets, sigma: float, mu, sd, lw, sw, max_ste
             prior, idx, t, latent_mean=mu, latent_std=sd, noise_sigma=sigma, latent_weight=lw,
             score_weight=sw, max_steps=max_steps, throw=False,
         )  # fmt: skip
-        return f.vertices, f.result == optx.RESULTS.successful, f.num_steps
+        return f.value.vertices, f.result == bp.RESULTS.successful, f.stats["num_steps"]
 
     return jax.lax.map(one, targets, batch_size=min(FIT_BATCH, targets.shape[0]))
 
@@ -172,7 +171,7 @@ def main(argv=None) -> dict:
     k_pop, k_noise, k_prior = jax.random.split(key, 3)
     body = bp.load_default_body("cmu_mb")
     vertex_map, faces = bp.load_decimated()
-    pop = bp.sample_population(k_pop, n_train + n_val + n_test, progress=progress)
+    pop = bp.sample_population(n_train + n_val + n_test, progress=progress, key=k_pop)
     verts = np.asarray(pop.vertices, np.float64)[:, vertex_map]
     del pop
     train, val, test = np.split(verts, [n_train, n_train + n_val])
@@ -203,7 +202,8 @@ def main(argv=None) -> dict:
     else:
         pcfg = dspp.DSPPConfig(n_steps=cfg["prior_steps"], batch_size=cfg["prior_batch"],
                                steps_per_call=min(500, cfg["prior_steps"]))  # fmt: skip
-        prior, log = dspp.train_shape_prior(train, key=k_prior, config=pcfg, progress=progress)
+        sol = dspp.train_shape_prior(train, key=k_prior, config=pcfg, progress=progress)
+        prior, log = sol.value, sol.aux
         tail = max(1, log.n_steps // 10)
         prior_info = dict(
             source="trained here", config=pcfg.to_dict(), train_wall_s=log.wall_time_s,

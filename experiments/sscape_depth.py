@@ -111,6 +111,18 @@ def _pad(model, k_max: int):
     )
 
 
+# The result codes of metrics.json: under the one result convention (`bodyprior.Solution`) a fit
+# that used all `max_rounds` is `RESULTS.successful` with `stats["converged"]` False; the metrics
+# keep the code the earlier convention gave it.
+_NOT_CONVERGED = "The data term was still changing after `max_passes` passes (the fit is usable)."
+
+
+def _result_code(sol) -> str:
+    if not bool(sol.result == bp.RESULTS.successful):
+        return bp.RESULTS[sol.result]
+    return "successful" if bool(sol.stats["converged"]) else _NOT_CONVERGED
+
+
 def _rest_error(fit_rest, scale, true_rest):
     """Per-vertex error (mm) of the scaled fitted rest shape after rigid alignment to the truth."""
     x = np.asarray(fit_rest, np.float64) * float(scale)
@@ -120,7 +132,7 @@ def _rest_error(fit_rest, scale, true_rest):
 
 def _subjects(key, body, tmpl, n, n_points, progress):
     """Test subjects: true rest/posed meshes and their front/back depth scans."""
-    pool = bp.sample_population(key, max(4 * n, 8), body=body, progress=False)
+    pool = bp.sample_population(max(4 * n, 8), body=body, progress=False, key=key)
     sex = np.asarray(pool.sex)
     males, females = np.flatnonzero(sex == 0), np.flatnonzero(sex == 1)
     pick = []
@@ -136,7 +148,7 @@ def _subjects(key, body, tmpl, n, n_points, progress):
     out = []
     for s, i in enumerate(tqdm(pick, desc="depth captures", disable=not progress)):
         kp, ks = jr.split(jr.fold_in(key, 1000 + s))
-        poses = capture_poses(kp, body.joint_names, rest_joints, 2)
+        poses = capture_poses(body.joint_names, rest_joints, 2, key=kp)
         lc = pool.local_changes[i]
         rest, _ = bp.rest_shape(body, pool.phenotypes[i], lc)
         subj = dict(index=i, sex=int(sex[i]), rest=np.asarray(tmpl.restrict(rest), np.float64),
@@ -145,8 +157,8 @@ def _subjects(key, body, tmpl, n, n_points, progress):
             v, _ = bp.evaluate(body, pool.phenotypes[i], jnp.asarray(poses[k]), local_changes=lc)
             v = np.asarray(v, np.float64)
             scan, _, depth = simulate_depth_scan(
-                jr.fold_in(ks, k), v, faces, cam, v[lm_index], body.landmark_names,
-                n_points=n_points,
+                v, faces, cam, v[lm_index], body.landmark_names,
+                n_points=n_points, key=jr.fold_in(ks, k),
             )  # fmt: skip
             subj["posed"].append(np.asarray(tmpl.restrict(v)))
             subj["scans"].append(scan)
@@ -157,7 +169,7 @@ def _subjects(key, body, tmpl, n, n_points, progress):
 
 def _spaces(key, body, tmpl, st: Setting, progress):
     """(name, norm, n_train, model with max components) for every training set and normalization."""
-    train = bp.sample_population(key, st.n_train, body=body, progress=progress)
+    train = bp.sample_population(st.n_train, body=body, progress=progress, key=key)
     meshes = np.asarray(tmpl.restrict(train.vertices), np.float64)
     poses = np.asarray(train.poses, np.float64)
     kmax = max(st.components)
@@ -171,8 +183,8 @@ def _spaces(key, body, tmpl, st: Setting, progress):
             times[f"{norm}_{n}"] = time.perf_counter() - t0
             spaces.append((norm, n, model))
     if st.baseline:
-        base = bp.sample_population(jr.fold_in(key, 7), st.baseline, body=body, scheme="anny",
-                                    progress=False)  # fmt: skip
+        base = bp.sample_population(st.baseline, body=body, scheme="anny",
+                                    progress=False, key=jr.fold_in(key, 7))  # fmt: skip
         bm = np.asarray(tmpl.restrict(base.vertices), np.float64)
         k = min(kmax, st.baseline - 1)
         spaces.append(("baseline", st.baseline, learn(jnp.asarray(bm), tmpl.faces, n_components=k,
@@ -298,16 +310,17 @@ def main(argv=None):
         rest_err, posed_err, rounds, codes = [], [], [], []
         for s, subj in enumerate(subjects):
             t0 = time.perf_counter()
-            fit = fit_depth(m, subj["scans"][0], subj["scans"][1], tmpl, config=st.config,
+            sol = fit_depth(m, subj["scans"][0], subj["scans"][1], tmpl, config=st.config,
                             throw=False)  # fmt: skip
+            fit = sol.value
             jax.block_until_ready(fit.vertices)
             fit_times.append(time.perf_counter() - t0)
             rest_err.append(_rest_error(fit.rest_vertices, fit.scale, subj["rest"]))
             posed_err.append(np.concatenate(
                 [np.asarray(gt_error(fit.vertices[v], subj["posed"][v]))[~hand] for v in (0, 1)]
             ))  # fmt: skip
-            rounds.append(int(fit.stats["rounds"]))
-            codes.append(str(bp.sscape.FitResult[fit.result]) or "successful")
+            rounds.append(int(sol.stats["rounds"]))
+            codes.append(_result_code(sol))
             fits_kept[(norm, n, k, s)] = fit
             bar.update(1)
         re, pe = np.stack(rest_err), np.stack(posed_err)

@@ -179,7 +179,7 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
         chunk_size=chunk,
         progress=progress,
         throw=False,
-    )
+    ).value
     times["sscape_fit_s"] = time.perf_counter() - t0
     tmpl_v = jnp.asarray(tmpl.vertices, jnp.float64)  # NRD runs in its input's dtype: float64
     lm_tmpl = tmpl_v[tmpl.landmark_index]
@@ -198,8 +198,10 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
         t0 = time.perf_counter()
         res = []
         for i in tqdm(range(n), desc=name, disable=not progress, unit="scan"):
-            r = registration.nrd(inits[name][i], tmpl, _index(scans, i), config=cfgs[name], throw=False)
-            res.append(np.asarray(r.vertices))
+            r = registration.nrd(
+                inits[name][i], _index(scans, i), tmpl, config=cfgs[name], throw=False
+            )
+            res.append(np.asarray(r.value.vertices))
         out[name] = np.stack(res)
         times[KEYS[name] + "_s"] = time.perf_counter() - t0
     return out, times
@@ -343,7 +345,7 @@ def main(argv=None) -> dict:
     n_init, n_train, n_test = size["n_init"], size["n_train"], size["n_test"]
     n_all = n_init + n_train + n_test
     t0 = time.perf_counter()
-    pop = bp.sample_population(jax.random.fold_in(key, 0), n_all, body=body, progress=progress)
+    pop = bp.sample_population(n_all, body=body, progress=progress, key=jax.random.fold_in(key, 0))
     t_pop = time.perf_counter() - t0
     full = np.asarray(pop.vertices, np.float64)
     gt_all = np.asarray(tmpl.restrict(full))
@@ -354,8 +356,8 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     cfg = registration.ScannerConfig(n_points=size["points"])
     scans, truths = registration.simulate_scans(
-        jax.random.fold_in(key, 1), full[scan_bodies], body.faces, body.landmark_index,
-        body.landmark_names, cfg, progress=progress,
+        full[scan_bodies], body.faces, body.landmark_index,
+        body.landmark_names, cfg, progress=progress, key=jax.random.fold_in(key, 1),
     )  # fmt: skip
     t_scan = time.perf_counter() - t0
     registration.check_scan(scans)

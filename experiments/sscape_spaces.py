@@ -175,7 +175,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     n_init, n_boot, n_test = size["n_init"], size["n_boot"], size["n_test"]
     pop = bp.sample_population(
-        jax.random.fold_in(key, 0), n_init + n_boot + n_test, body=body, progress=progress
+        n_init + n_boot + n_test, body=body, progress=progress, key=jax.random.fold_in(key, 0)
     )
     full = np.asarray(pop.vertices, np.float64)
     gt = np.asarray(tmpl.restrict(full))
@@ -185,8 +185,9 @@ def main(argv=None):
     rest = np.asarray(tmpl.restrict(rest_all), np.float64)
     scan_idx = np.arange(n_init, n_init + n_boot + n_test)
     scans, _ = registration.simulate_scans(
-        jax.random.fold_in(key, 1), full[scan_idx], body.faces, body.landmark_index,
+        full[scan_idx], body.faces, body.landmark_index,
         body.landmark_names, registration.ScannerConfig(n_points=size["points"]), progress=progress,
+        key=jax.random.fold_in(key, 1),
     )  # fmt: skip
     boot = np.arange(n_boot)  # indices into the scans
     test = np.arange(n_boot, n_boot + n_test)
@@ -217,8 +218,8 @@ def main(argv=None):
     else:
         # The paper's setting: an initial space from another, less representative data set (the
         # MPI Human Shape space before CAESAR); here bodies from anny's phenotype sampler.
-        other = bp.sample_population(jax.random.fold_in(key, 7), n_init, body=body,
-                                     scheme="anny", progress=progress)  # fmt: skip
+        other = bp.sample_population(n_init, body=body, scheme="anny", progress=progress,
+                                     key=jax.random.fold_in(key, 7))  # fmt: skip
         init_meshes = np.asarray(tmpl.restrict(other.vertices), np.float64)
     metrics["initial_space"] = {"source": args.init_space, "n_train": int(n_init),
                                 "n_components": int(size["n_init_components"])}  # fmt: skip
@@ -246,7 +247,7 @@ def main(argv=None):
             res = pickle.load(f)
     else:
         res = sscape.bootstrap(
-            boot_scans, tmpl, init_model, n_passes=size["n_passes"], n_components=max(comps),
+            init_model, boot_scans, tmpl, n_passes=size["n_passes"], n_components=max(comps),
             gate=gate, register=register, callback=on_pass, progress=progress,
         )  # fmt: skip
         with bp.atomic_open(ckpt, "wb") as f:
@@ -309,8 +310,8 @@ def main(argv=None):
 
     # ---- training-set size (Fig. 3b) on ground-truth meshes
     t0 = time.perf_counter()
-    pool_pop = bp.sample_population(jax.random.fold_in(key, 3), size["pool"], body=body,
-                                    progress=progress)  # fmt: skip
+    pool_pop = bp.sample_population(size["pool"], body=body,
+                                    progress=progress, key=jax.random.fold_in(key, 3))  # fmt: skip
     pool = np.asarray(tmpl.restrict(pool_pop.vertices), np.float64)
     pool_aligned, _ = sscape.procrustes_align(jnp.asarray(pool))
     pool_aligned = np.asarray(pool_aligned)

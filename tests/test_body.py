@@ -242,7 +242,7 @@ def test_regressed_joints_follow_shape(body, getkey):
 
 def test_population(getkey):
     b = bp.load_default_body(local_changes=True)
-    pop = bp.sample_population(jax.random.PRNGKey(3), 40, body=b, progress=False, chunk=16)
+    pop = bp.sample_population(40, body=b, progress=False, chunk=16, key=jax.random.PRNGKey(3))
     assert pop.vertices.shape == (40, 13380, 3) and len(pop) == 40
     h = np.asarray(pop.vertices[..., 2].max(1) - pop.vertices[..., 2].min(1))
     assert np.all((h > 1.4) & (h < 2.15))
@@ -250,12 +250,12 @@ def test_population(getkey):
     assert 0 < sex.sum() < 40  # both sexes present
     assert np.all((pop.age_years >= 18) & (pop.age_years <= 65))
     assert h[sex == 0].mean() > h[sex == 1].mean()  # men taller on average
-    pop2 = bp.sample_population(jax.random.PRNGKey(3), 40, body=b, progress=False, chunk=8)
+    pop2 = bp.sample_population(40, body=b, progress=False, chunk=8, key=jax.random.PRNGKey(3))
     np.testing.assert_allclose(pop.vertices, pop2.vertices, atol=1e-5)  # reproducible from the seed
     with pytest.raises(ValueError, match="age_range"):
-        bp.sample_population(jax.random.PRNGKey(0), 3, body=b, age_range=(30, 20))
+        bp.sample_population(3, body=b, age_range=(30, 20), key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="n"):
-        bp.sample_population(jax.random.PRNGKey(0), 0, body=b)
+        bp.sample_population(0, body=b, key=jax.random.PRNGKey(0))
 
 
 def test_cli(tmp_path, capsys):
@@ -281,7 +281,9 @@ def test_sscape_space_from_population():
     """An S-SCAPE space learned from the population, with the default body's rig, reconstructs held-out
     bodies and poses like the body it came from."""
     b = bp.load_default_body()
-    pop = bp.sample_population(jax.random.PRNGKey(7), 48, body=b, pose_jitter_deg=0.0, progress=False)
+    pop = bp.sample_population(
+        48, body=b, pose_jitter_deg=0.0, progress=False, key=jax.random.PRNGKey(7)
+    )
     train, test = pop.vertices[:40], pop.vertices[40:]
     space = bp.sscape.learn(train, b.faces, n_components=20, **bp.sscape_rig(b))
     assert space.n_joints == 31 and space.n_components == 20

@@ -59,7 +59,7 @@ def toy():
 
 def _scan(vertices, faces, rng, n_points=16000):
     pts, fidx, _ = (np.asarray(a) for a in bp.sample_surface(
-        __import__("jax").random.PRNGKey(int(rng.integers(1 << 30))), vertices, faces, n_points
+        vertices, faces, n_points, key=__import__("jax").random.PRNGKey(int(rng.integers(1 << 30)))
     ))  # fmt: skip
     fn = np.asarray(bp.face_normals(vertices, faces))[fidx]
     pts = pts + 0.001 * rng.standard_normal(pts.shape)
@@ -118,14 +118,14 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
         return Registration(v, np.zeros((len(bodies), 4, 3)), None)
 
     init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, **tmpl.rig_kwargs())
-    res = bootstrap(scans, tmpl, init, n_passes=4, n_components=10, register=register)
+    res = bootstrap(init, scans, tmpl, n_passes=4, n_components=10, register=register)
     assert res.accepted_per_pass == [6, 12, 12, 12]
     assert seen == [1, 5, 10, 10]  # each pass registers from the space of the previous one
     assert res.model.n_components == 10
     for p in res.passes:
         assert p.gate.accepted.shape == (12,)
     with pytest.raises(ValueError, match="n_passes"):
-        bootstrap(scans, tmpl, init, n_passes=0, register=register)
+        bootstrap(init, scans, tmpl, n_passes=0, register=register)
 
 
 def test_calibrate_gate_from_reference_registrations(toy):

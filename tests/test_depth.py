@@ -215,7 +215,8 @@ def test_fit_depth_recovers_shape_and_pose(problem):
     poses[1, names.index("RightArm"), 1] = 0.6
     poses[1, 0, 2] = 0.1
     scans, truth = _model_scans(tmpl, model, coeffs, jnp.asarray(poses), jr.PRNGKey(0))
-    fit = fit_depth(model, scans[0], scans[1], tmpl, config=FAST)
+    sol = fit_depth(model, scans[0], scans[1], tmpl, config=FAST)
+    fit = sol.value
     assert fit.vertices.shape == (2, model.n_vertices, 3) and fit.poses.shape == (2, J, 3)
     hand = np.asarray(tmpl.hand_mask)
     # Posed error (hands excluded): the back image cannot see the toes (their pose is a guess), so
@@ -228,8 +229,8 @@ def test_fit_depth_recovers_shape_and_pose(problem):
     assert rest_err.mean() * 1000 < 6.0
     # (The coefficients themselves are not compared: this 12-body space has near-degenerate small
     # components, so different coefficients give the same surface to within the noise.)
-    assert float(fit.stats["data_term"][0]) > float(fit.stats["data_term"][fit.stats["rounds"]])
-    assert np.all(np.asarray(fit.stats["valid_fraction"]) > 0.8)
+    assert float(sol.stats["data_term"][0]) > float(sol.stats["data_term"][sol.stats["rounds"]])
+    assert np.all(np.asarray(sol.stats["valid_fraction"]) > 0.8)
 
 
 def test_fit_depth_bad_input():

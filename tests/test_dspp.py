@@ -7,6 +7,7 @@ import jax.random as jr
 import numpy as np
 import pytest
 
+import bodyprior as bp
 from bodyprior import dspp
 from bodyprior.dspp._nets import LatentDiscriminator, PointNetDiscriminator
 
@@ -38,8 +39,8 @@ def _poses(n=30, seed=1):
 
 def test_network_shapes(getkey):
     cfg = _cfg()
-    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, getkey())
-    pp = dspp.init_aegan("pose", np.zeros((20, 3)), 1.0, cfg, getkey())
+    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, key=getkey())
+    pp = dspp.init_aegan("pose", np.zeros((20, 3)), 1.0, cfg, key=getkey())
     assert isinstance(sp, dspp.ShapePrior) and isinstance(pp, dspp.PosePrior)
     x = jnp.ones((V, 3))
     z = sp.encode(x)
@@ -48,7 +49,7 @@ def test_network_shapes(getkey):
     assert sp.latent_logit(z).shape == () and sp.n_vertices == V
     assert pp.sample(getkey()).shape == (20, 3) and pp.encode(jnp.zeros((20, 3))).shape == (4,)
     for kind, item in (("shape", (V, 3)), ("pose", (20, 3))):
-        g = dspp.init_geometry_gan(kind, np.zeros(item), 1.0, cfg, getkey())
+        g = dspp.init_geometry_gan(kind, np.zeros(item), 1.0, cfg, key=getkey())
         assert g.sample(getkey()).shape == item and g.logit(jnp.zeros(item)).shape == ()
     # discriminators: every linear map is spectrally normalised
     d, _ = eqx.nn.make_with_state(PointNetDiscriminator)((8, 16), (8,), key=getkey())
@@ -93,7 +94,9 @@ def test_spectral_norm_bounds_lipschitz(getkey):
 def test_training_decreases_ae_loss_and_is_deterministic(getkey):
     data = _shapes()
     cfg = _cfg(n_steps=300, batch_size=4, steps_per_call=100, checkpoint_every=300)
-    prior, log = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    sol = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    assert sol.result == bp.RESULTS.successful
+    prior, log = sol.value, sol.aux
     assert log.n_steps == 300 and log.finite
     assert np.mean(log.ae_loss[-20:]) < 0.2 * np.mean(log.ae_loss[:20])
     assert np.all((log.d_real > 0) & (log.d_real < 1)) and np.all(np.isfinite(log.g_loss))
@@ -102,7 +105,8 @@ def test_training_decreases_ae_loss_and_is_deterministic(getkey):
     assert float(jnp.mean(jnp.linalg.norm(rec - data, axis=-1))) < 0.5 * float(
         np.mean(np.linalg.norm(data - data.mean(0), axis=-1))
     )
-    prior2, log2 = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    sol2 = dspp.train_shape_prior(data, key=jr.PRNGKey(3), config=cfg, progress=False)
+    prior2, log2 = sol2.value, sol2.aux
     assert eqx.tree_equal(eqx.filter(prior, eqx.is_array), eqx.filter(prior2, eqx.is_array))
     np.testing.assert_array_equal(log.ae_loss, log2.ae_loss)
 
@@ -116,13 +120,16 @@ def test_checkpoint_resume_is_bitwise_identical(tmp_path, which):
     if which == "aegan_pose":
 
         def train(cfg, ckpt, key=5):
-            return dspp.train_pose_prior(_poses(), key=jr.PRNGKey(key), config=cfg,
-                                         checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            sol = dspp.train_pose_prior(_poses(), key=jr.PRNGKey(key), config=cfg,
+                                        checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            return sol.value, sol.aux
     else:
 
         def train(cfg, ckpt, key=5):
-            return dspp.train_geometry_gan(_shapes(), kind="shape", key=jr.PRNGKey(key), config=cfg,
-                                           checkpoint_dir=ckpt, progress=False)  # fmt: skip
+            sol = dspp.train_geometry_gan(_shapes(), kind="shape", key=jr.PRNGKey(key),
+                                          config=cfg, checkpoint_dir=ckpt,
+                                          progress=False)  # fmt: skip
+            return sol.value, sol.aux
 
     full, log_full = train(_cfg(n_steps=20), None)
     half, _ = train(_cfg(n_steps=10), tmp_path)  # "interrupted" after step 10
@@ -147,9 +154,9 @@ def test_checkpoint_resume_is_bitwise_identical(tmp_path, which):
 
 def test_sampling_jit_vmap_and_save_load(tmp_path, getkey):
     cfg = _cfg()
-    sp = dspp.init_aegan("shape", _shapes().mean(0), 0.5, cfg, getkey())
+    sp = dspp.init_aegan("shape", _shapes().mean(0), 0.5, cfg, key=getkey())
     key = jr.PRNGKey(9)
-    xs = dspp.sample(sp, key, 5)
+    xs = dspp.sample(sp, 5, key=key)
     assert xs.shape == (5, V, 3)
     one = jnp.stack([sp.sample(k) for k in jr.split(key, 5)])
     np.testing.assert_allclose(np.asarray(xs), np.asarray(one), rtol=1e-5, atol=1e-6)
@@ -157,10 +164,10 @@ def test_sampling_jit_vmap_and_save_load(tmp_path, getkey):
     dspp.save_prior(path, sp)
     back = dspp.load_prior(path)
     assert isinstance(back, dspp.ShapePrior) and back.config == sp.config
-    np.testing.assert_array_equal(np.asarray(dspp.sample(back, key, 5)), np.asarray(xs))
+    np.testing.assert_array_equal(np.asarray(dspp.sample(back, 5, key=key)), np.asarray(xs))
     z = sp.encode(jnp.zeros((V, 3)))
     assert float(back.latent_logit(z)) == float(sp.latent_logit(z))
-    g = dspp.init_geometry_gan("pose", np.zeros((20, 3)), 1.0, cfg, getkey())
+    g = dspp.init_geometry_gan("pose", np.zeros((20, 3)), 1.0, cfg, key=getkey())
     dspp.save_prior(tmp_path / "g.dspp", g)
     g2 = dspp.load_prior(tmp_path / "g.dspp")
     assert g2.kind == "pose"
@@ -174,7 +181,7 @@ def test_pca_baselines():
     data = _poses(n=50)
     for mode in dspp.PCA_MODES:
         pca = dspp.fit_pca_prior(data, 6, mode=mode)
-        x = np.asarray(dspp.sample(pca, jr.PRNGKey(0), 400), np.float64)
+        x = np.asarray(dspp.sample(pca, 400, key=jr.PRNGKey(0)), np.float64)
         c = (x - np.asarray(pca.mean)).reshape(400, -1) @ np.asarray(pca.basis).T
         c /= np.asarray(pca.stddev)
         if mode == "gaussian":
@@ -223,15 +230,15 @@ def test_bad_inputs(tmp_path, getkey):
     with pytest.raises(ValueError, match="checkpoint_dir"):
         dspp.train_shape_prior(_shapes(), key=jr.PRNGKey(0), config=cfg,
                                checkpoint_dir=tmp_path / "missing")  # fmt: skip
-    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, getkey())
+    sp = dspp.init_aegan("shape", np.zeros((V, 3)), 1.0, cfg, key=getkey())
     with pytest.raises(ValueError, match=r"`x` must have shape \(40, 3\)"):
         sp.encode(jnp.zeros((V + 1, 3)))
     with pytest.raises(ValueError, match=r"`z` must have shape \(4,\)"):
         sp.decode(jnp.zeros(5))
     with pytest.raises(ValueError, match="`n` must be a positive int"):
-        dspp.sample(sp, jr.PRNGKey(0), 0)
+        dspp.sample(sp, 0, key=jr.PRNGKey(0))
     with pytest.raises(ValueError, match="`model`"):
-        dspp.sample("prior", jr.PRNGKey(0), 2)
+        dspp.sample("prior", 2, key=jr.PRNGKey(0))
     with pytest.raises(ValueError, match="`n_components`"):
         dspp.fit_pca_prior(_poses(n=5), 5)
     with pytest.raises(ValueError, match="`mode`"):

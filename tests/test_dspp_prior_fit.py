@@ -12,7 +12,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import pytest
 
 import bodyprior as bp
@@ -40,7 +39,7 @@ def setup():
     cfg = dspp.DSPPConfig(latent_dim=4, noise_dim=4, ae_hidden=(16,), generator_hidden=(8,),
                           discriminator_hidden=(8,))  # fmt: skip
     scale = float(np.sqrt(np.mean((meshes - meshes.mean(0)) ** 2)))
-    prior = dspp.init_aegan("shape", meshes.mean(0), scale, cfg, jax.random.PRNGKey(1))
+    prior = dspp.init_aegan("shape", meshes.mean(0), scale, cfg, key=jax.random.PRNGKey(1))
     return dict(meshes=meshes, model=model, prior=prior, idx=np.arange(0, V, 3, dtype=np.int32))
 
 
@@ -83,10 +82,11 @@ def test_space_fit_is_the_map_estimate(setup):
     rng = np.random.default_rng(3)
     ts = np.stack([meshes[3][idx], meshes[4][idx]]) + 0.01 * rng.normal(size=(2, len(idx), 3))
     # Batched over bodies with vmap (throw=False).
-    fits = jax.vmap(lambda t: dspp.fit_shape_space_to_landmarks(
+    sols = jax.vmap(lambda t: dspp.fit_shape_space_to_landmarks(
         model, idx, t, noise_sigma=0.02, coeff_weight=0.7, throw=False)
     )(jnp.asarray(ts))  # fmt: skip
-    assert np.all(np.asarray(fits.result == optx.RESULTS.successful))
+    assert np.all(np.asarray(sols.result == bp.RESULTS.successful))
+    fits = sols.value
     # Closed form: (A^T A / s^2 + w I) c = A^T (t - m) / s^2 with A the landmark rows of the basis.
     A = (np.asarray(model.basis)[:, idx] * np.asarray(model.stddev)[:, None, None]).reshape(6, -1).T
     for k in range(2):
@@ -101,17 +101,17 @@ def test_space_fit_is_the_map_estimate(setup):
 
     def fit_with(w, wr):
         reg = dspp.shape_prior_residual(prior, w, reconstruction_weight=wr, reconstruction=True)
-        fit = dspp.fit_shape_space_to_landmarks(model, idx, ts[0], noise_sigma=0.02,
+        sol = dspp.fit_shape_space_to_landmarks(model, idx, ts[0], noise_sigma=0.02,
                                                 coeff_weight=0.7, regulariser=reg)  # fmt: skip
-        assert fit.result == optx.RESULTS.successful
-        return fit, _f64(reg)
+        assert sol.result == bp.RESULTS.successful
+        return sol, _f64(reg)
 
     fit0, _ = fit_with(0.0, 0.0)
-    np.testing.assert_allclose(fit0.params, fits.params[0], atol=1e-7)
+    np.testing.assert_allclose(fit0.value.params, fits.params[0], atol=1e-7)
     fit1, r1 = fit_with(50.0, 1e3)
     plain = fits.vertices[0]
-    assert fit1.energy < fits.energy[0] + r1.energy(plain) - 1e-9
-    assert r1.energy(fit1.vertices) < r1.energy(plain)
+    assert fit1.stats["energy"] < sols.stats["energy"][0] + r1.energy(plain) - 1e-9
+    assert r1.energy(fit1.value.vertices) < r1.energy(plain)
 
 
 def test_latent_fit_recovers_decoded_shape(setup):
@@ -124,11 +124,11 @@ def test_latent_fit_recovers_decoded_shape(setup):
     np.testing.assert_allclose(_landmark_decoder(p64, idx[::3])(z_true),
                                p64.decode(z_true)[::3], rtol=1e-12)  # fmt: skip
     target = p64.decode(z_true)
-    fit = dspp.fit_latent_to_landmarks(prior, idx, target, latent_mean=mu, latent_std=sd,
+    sol = dspp.fit_latent_to_landmarks(prior, idx, target, latent_mean=mu, latent_std=sd,
                                        noise_sigma=0.01, latent_weight=1e-10, score_weight=0.0,
                                        max_steps=200)  # fmt: skip
-    assert fit.result == optx.RESULTS.successful
-    assert float(fit.landmark_rms) < 1e-5 * float(prior.scale)
+    assert sol.result == bp.RESULTS.successful
+    assert float(sol.stats["landmark_rms"]) < 1e-5 * float(prior.scale)
 
 
 def test_fitting_errors(setup):
@@ -171,7 +171,8 @@ def test_experiment_quick(tmp_path):
     cfg = dspp.DSPPConfig(latent_dim=8, noise_dim=8, ae_hidden=(16,), generator_hidden=(16,),
                           discriminator_hidden=(16,))  # fmt: skip
     prior_path = tmp_path / "prior.eqx"
-    dspp.save_prior(prior_path, dspp.init_aegan("shape", mean, 0.05, cfg, jax.random.PRNGKey(0)))
+    prior = dspp.init_aegan("shape", mean, 0.05, cfg, key=jax.random.PRNGKey(0))
+    dspp.save_prior(prior_path, prior)
     out = tmp_path / "out"
     m = mod.main(["--quick", "--out", str(out), "--no-progress", "--n-train", "16", "--n-val", "2",
                   "--n-test", "2", "--n-components", "4", "--max-steps", "8",

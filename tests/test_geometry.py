@@ -265,7 +265,7 @@ def test_sample_surface(getkey):
     # Two triangles with areas 1 : 4.5.
     v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0], [3, 0, 1], [0, 3, 1], [0, 0, 1]])
     faces = np.array([[0, 1, 2], [3, 4, 5]])
-    pts, fidx, bary = G.sample_surface(getkey(), v, faces, 4000)
+    pts, fidx, bary = G.sample_surface(v, faces, 4000, key=getkey())
     assert pts.shape == (4000, 3) and fidx.shape == (4000,) and bary.shape == (4000, 3)
     assert fidx.dtype == jnp.int32
     assert bool(jnp.all(bary >= 0)) and np.allclose(jnp.sum(bary, axis=1), 1.0)
@@ -275,7 +275,7 @@ def test_sample_surface(getkey):
     # Uniform within a triangle: mean of the barycentrics is the centroid (1/3 each).
     np.testing.assert_allclose(jnp.mean(bary, axis=0), 1 / 3, atol=0.02)
     # Differentiable in the vertices.
-    g = jax.grad(lambda x: jnp.sum(G.sample_surface(jr.PRNGKey(1), x, faces, 10)[0]))(
+    g = jax.grad(lambda x: jnp.sum(G.sample_surface(x, faces, 10, key=jr.PRNGKey(1))[0]))(
         jnp.asarray(v)
     )
     assert all_finite(g) and float(jnp.max(jnp.abs(g))) > 0
@@ -318,7 +318,7 @@ def test_closest_points_match_trimesh(seed, scale):
 
 def test_closest_points_of_surface_samples(getkey):
     v = deformed_ico(1, 0.1)
-    pts, fidx, bary = G.sample_surface(getkey(), v, ICO.faces, 50)
+    pts, fidx, bary = G.sample_surface(v, ICO.faces, 50, key=getkey())
     cp, cf, cb, d = G.closest_points_on_mesh(pts, v, ICO.faces)
     np.testing.assert_allclose(d, 0.0, atol=1e-12)
     np.testing.assert_allclose(cp, pts, atol=1e-12)
@@ -416,7 +416,7 @@ def test_validation_errors():
     with pytest.raises(ValueError, match=r"`bary` must have shape \(N, 3\) with N=2"):
         G.barycentric_points(v, ICO.faces, np.array([0, 1]), np.ones((1, 3)) / 3)
     with pytest.raises(ValueError, match="`n` must be a non-negative"):
-        G.sample_surface(jr.PRNGKey(0), v, ICO.faces, 2.5)
+        G.sample_surface(v, ICO.faces, 2.5, key=jr.PRNGKey(0))
     # Tracers only get shape checks (no NaN check), and still work under jit.
     out = jax.jit(lambda x: G.face_areas(x, ICO.faces))(jnp.asarray(v))
     assert out.shape == (80,)

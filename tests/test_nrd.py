@@ -56,7 +56,7 @@ def _true_body(verts: np.ndarray) -> np.ndarray:
 
 
 def _scan(key, verts, faces, tmpl, lm_sigma=0.003, n=N_POINTS):
-    pts, fi, _ = bp.sample_surface(key, verts, faces, n)
+    pts, fi, _ = bp.sample_surface(verts, faces, n, key=key)
     normals = bp.face_normals(verts, faces)[fi]
     kn, kl = jr.split(key)
     pts = pts + 0.0005 * jr.normal(kn, pts.shape)
@@ -88,7 +88,7 @@ def setup():
     truth = _true_body(np.asarray(tmpl.vertices))
     scan = _scan(jr.PRNGKey(0), truth, np.asarray(tmpl.faces), tmpl)
     init = _aligned_template(tmpl, scan)
-    out = _nrd.nrd(init, tmpl, scan, config=CFG)
+    out = _nrd.nrd(init, scan, tmpl, config=CFG)
     return tmpl, truth, scan, init, out
 
 
@@ -98,37 +98,37 @@ def _gt_mm(v, truth):
 
 def test_nrd_recovers_true_body(setup):
     tmpl, truth, scan, init, out = setup
-    e0, e1 = _gt_mm(init, truth), _gt_mm(out.vertices, truth)
+    e0, e1 = _gt_mm(init, truth), _gt_mm(out.value.vertices, truth)
     body = ~np.asarray(tmpl.hand_mask)
     # NRD fits the surface closely but slides along it where the template and body differ
     # (paper §4.3), so the true-correspondence error only halves here
     assert e1[body].mean() < 0.6 * e0[body].mean(), (e0[body].mean(), e1[body].mean())
-    assert float(out.mean_distance_mm[int(out.n_rounds) - 1]) < 3.5
+    assert float(out.stats["mean_distance_mm"][int(out.stats["rounds"]) - 1]) < 3.5
     # the transforms reproduce the vertices from the (metre, scan-frame) initial mesh
     ph = jnp.concatenate([init, jnp.ones((init.shape[0], 1))], axis=1)
     np.testing.assert_allclose(
-        jnp.einsum("vij,vj->vi", out.transforms, ph), out.vertices, atol=1e-10
+        jnp.einsum("vij,vj->vi", out.value.transforms, ph), out.value.vertices, atol=1e-10
     )
 
 
 def test_rounds_recorded(setup):
     tmpl, truth, scan, init, out = setup
     R = 1 + CFG.n_data_rounds
-    assert CFG.n_data_rounds == 5 and out.energy.shape == (R,)
-    n = int(out.n_rounds)
+    assert CFG.n_data_rounds == 5 and out.stats["energy"].shape == (R,)
+    n = int(out.stats["rounds"])
     assert 2 <= n <= R
-    assert out.result == _nrd.optx.RESULTS.successful
+    assert out.result == bp.RESULTS.successful
     for f in ("energy", "cg_residual", "smooth_weight", "landmark_weight"):
-        a = np.asarray(getattr(out, f))
+        a = np.asarray(out.stats[f])
         assert a.dtype == np.float64
         assert np.all(np.isfinite(a[:n])) and np.all(np.isnan(a[n:])), f
-    assert np.all(np.isfinite(np.asarray(out.mean_distance_mm)[1:n]))
-    assert np.all(np.asarray(out.cg_residual)[:n] <= CFG.cg_rtol)
+    assert np.all(np.isfinite(np.asarray(out.stats["mean_distance_mm"])[1:n]))
+    assert np.all(np.asarray(out.stats["cg_residual"])[:n] <= CFG.cg_rtol)
     # the schedule: β = 1e6 twice, then ×0.25 per round; the data term shrinks as β relaxes
-    np.testing.assert_allclose(np.asarray(out.smooth_weight)[:3], [1e6, 1e6, 2.5e5])
-    d = np.asarray(out.mean_distance_mm)[1:n]
+    np.testing.assert_allclose(np.asarray(out.stats["smooth_weight"])[:3], [1e6, 1e6, 2.5e5])
+    d = np.asarray(out.stats["mean_distance_mm"])[1:n]
     assert np.all(np.diff(d) < 0)
-    assert out.vertices.dtype == jnp.float64 and out.transforms.dtype == jnp.float64
+    assert out.value.vertices.dtype == jnp.float64 and out.value.transforms.dtype == jnp.float64
 
 
 def test_identity_when_scan_is_template(setup, monkeypatch):
@@ -149,22 +149,24 @@ def test_identity_when_scan_is_template(setup, monkeypatch):
         landmark_mask=jnp.ones(len(tmpl.landmark_names), bool),
         landmark_names=tmpl.landmark_names,
     )
-    out = _nrd.nrd(v, tmpl, scan, config=CFG)
+    out = _nrd.nrd(v, scan, tmpl, config=CFG)
     assert not traces  # another scan of the same shapes: the compiled schedule is reused
     eye = np.broadcast_to(np.eye(3, 4), (n_v, 3, 4))
-    np.testing.assert_allclose(np.asarray(out.transforms), eye, atol=1e-9)
-    np.testing.assert_allclose(np.asarray(out.vertices), np.asarray(v), atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.value.transforms), eye, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.value.vertices), np.asarray(v), atol=1e-10)
     body = ~np.asarray(tmpl.hand_mask)
-    assert np.asarray(out.valid)[body].mean() > 0.95
+    assert np.asarray(out.value.valid)[body].mean() > 0.95
     np.testing.assert_array_equal(
-        np.asarray(out.matches)[np.asarray(out.valid)], np.nonzero(np.asarray(out.valid))[0]
+        np.asarray(out.value.matches)[np.asarray(out.value.valid)],
+        np.nonzero(np.asarray(out.value.valid))[0],
     )
 
 
 def test_hands_are_data_free(setup):
     tmpl, truth, scan, init, out = setup
     hand = np.asarray(tmpl.hand_mask)
-    assert not np.asarray(out.valid)[hand].any() and (np.asarray(out.matches)[hand] == -1).all()
+    valid, matches = np.asarray(out.value.valid), np.asarray(out.value.matches)
+    assert not valid[hand].any() and (matches[hand] == -1).all()
     # the data and landmark terms have zero gradient on hand transforms, non-zero elsewhere
     prep = _nrd._prepare(tmpl, CFG.n_patches)
     centre = init.mean(0)
@@ -172,10 +174,10 @@ def test_hands_are_data_free(setup):
     lm_v, lm_use = _nrd._landmark_map(tmpl, scan.landmark_names)
     assert not bool(lm_use[-1])  # the landmark on a hand vertex is not used
     q = (scan.points - centre) * 1000
-    valid = jnp.asarray(out.valid)
+    valid = jnp.asarray(out.value.valid)
     rnd = _nrd._Round(
         wd=valid / valid.sum(),
-        q=jnp.where(valid[:, None], q[jnp.maximum(out.matches, 0)], 0.0),
+        q=jnp.where(valid[:, None], q[jnp.maximum(out.value.matches, 0)], 0.0),
         wl=1e-3 * lm_use * scan.landmark_mask,
         lm_v=lm_v,
         b=(scan.landmarks - centre) * 1000,
@@ -298,27 +300,27 @@ def test_variants(setup):
     c = truth.mean(0)
     good = jnp.asarray(c + (truth - c) * np.array([1.03, 1.03, 1.0]) + np.array([0.005, 0, 0]))
     both = _nrd.nrd_batch(
-        jnp.stack([init, good]), tmpl, jax.tree.map(lambda x: jnp.stack([x, x]), scan), config=CFG
+        jnp.stack([init, good]), jax.tree.map(lambda x: jnp.stack([x, x]), scan), tmpl, config=CFG
     )
-    assert both.vertices.shape == (2,) + init.shape
+    assert both.value.vertices.shape == (2,) + init.shape
     # the same scan and start as the single call; the iterative solves agree to their tolerance,
     # and the few correspondences that flip at the 20 mm / 60 degree gates move the result a little
-    diff = 1000 * np.abs(np.asarray(both.vertices[0]) - np.asarray(out.vertices))
+    diff = 1000 * np.abs(np.asarray(both.value.vertices[0]) - np.asarray(out.value.vertices))
     assert diff.mean() < 0.5, diff.mean()
-    np.testing.assert_allclose(both.energy[0], out.energy, rtol=0.02)
+    np.testing.assert_allclose(both.stats["energy"][0], out.stats["energy"], rtol=0.02)
     body = ~np.asarray(tmpl.hand_mask)
-    e_good = _gt_mm(both.vertices[1], truth)[body].mean()
+    e_good = _gt_mm(both.value.vertices[1], truth)[body].mean()
     assert e_good < 0.75 * _gt_mm(good, truth)[body].mean(), e_good
-    assert e_good < 0.6 * _gt_mm(out.vertices, truth)[body].mean()
+    assert e_good < 0.6 * _gt_mm(out.value.vertices, truth)[body].mean()
     # NRD CW: constant weights, stops when the mean distance converges; fits less closely
     cw = _nrd.nrd(
-        init, tmpl, scan, config=_nrd.NRDConfig(n_patches=16, constant_weights=True, max_rounds=4)
+        init, scan, tmpl, config=_nrd.NRDConfig(n_patches=16, constant_weights=True, max_rounds=4)
     )
-    n = int(cw.n_rounds)
-    assert np.all(np.asarray(cw.smooth_weight)[:n] == 1e6)
+    n = int(cw.stats["rounds"])
+    assert np.all(np.asarray(cw.stats["smooth_weight"])[:n] == 1e6)
     assert (
-        np.asarray(cw.mean_distance_mm)[n - 1]
-        > np.asarray(out.mean_distance_mm)[int(out.n_rounds) - 1]
+        np.asarray(cw.stats["mean_distance_mm"])[n - 1]
+        > np.asarray(out.stats["mean_distance_mm"])[int(out.stats["rounds"]) - 1]
     )
 
 
@@ -331,19 +333,19 @@ def _replace(scan, **fields):
 def test_bad_inputs(setup):
     tmpl, truth, scan, init, out = setup
     with pytest.raises(ValueError, match="init_vertices"):
-        _nrd.nrd(init[:-1], tmpl, scan)
+        _nrd.nrd(init[:-1], scan, tmpl)
     with pytest.raises(ValueError, match="init_vertices.*NaN"):
-        _nrd.nrd(init.at[0, 0].set(jnp.nan), tmpl, scan)
-    with pytest.raises(ValueError, match="tmpl"):
-        _nrd.nrd(init, "template", scan)
+        _nrd.nrd(init.at[0, 0].set(jnp.nan), scan, tmpl)
+    with pytest.raises(ValueError, match="template"):
+        _nrd.nrd(init, scan, "template")
     with pytest.raises(ValueError, match="Scan"):
-        _nrd.nrd(init, tmpl, {"points": scan.points})
+        _nrd.nrd(init, {"points": scan.points}, tmpl)
     with pytest.raises(ValueError, match="millimetres"):
-        _nrd.nrd(init, tmpl, _replace(scan, points=scan.points * 1000))
+        _nrd.nrd(init, _replace(scan, points=scan.points * 1000), tmpl)
     with pytest.raises(ValueError, match="empty"):
-        _nrd.nrd(init, tmpl, _replace(scan, point_mask=scan.point_mask & False))
+        _nrd.nrd(init, _replace(scan, point_mask=scan.point_mask & False), tmpl)
     with pytest.raises(ValueError, match="batch"):
-        _nrd.nrd_batch(init[None], tmpl, scan)
+        _nrd.nrd_batch(init[None], scan, tmpl)
     with pytest.raises(ValueError, match="smooth_weight"):
         _nrd.NRDConfig(smooth_weight=-1.0)
     with pytest.raises(ValueError, match="constant_weights"):
@@ -351,4 +353,4 @@ def test_bad_inputs(setup):
     with pytest.raises(ValueError, match="max_angle_deg"):
         _nrd.NRDConfig(max_angle_deg=0.0)
     with pytest.raises(ValueError, match="config"):
-        _nrd.nrd(init, tmpl, scan, config={"decay": 0.5})
+        _nrd.nrd(init, scan, tmpl, config={"decay": 0.5})

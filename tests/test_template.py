@@ -38,7 +38,7 @@ def test_masks_and_skin(tmpl):
 
 def test_regressor_recovers_exact_joints(tmpl):
     body = bp.load_default_body("cmu_mb")
-    phen, _, _ = bp.sample_phenotypes(jr.PRNGKey(7), 16)
+    phen, _, _ = bp.sample_phenotypes(16, key=jr.PRNGKey(7))
     verts, joints = jax.vmap(lambda p: bp.rest_shape(body, p))(phen)
     w = np.asarray(tmpl.joint_regressor_weights)
     np.testing.assert_allclose(w.sum(1), 1.0, atol=2e-5)

@@ -51,8 +51,8 @@ def _skeleton(cls_name: str, kind: str, item_shape, config: DSPPConfig):
     mean = jnp.zeros(tuple(item_shape), jnp.float32)
     key = jax.random.PRNGKey(0)
     if cls_name == "GeometryGAN":
-        return init_geometry_gan(kind, mean, 1.0, config, key)
-    return init_aegan(kind, mean, 1.0, config, key)
+        return init_geometry_gan(kind, mean, 1.0, config, key=key)
+    return init_aegan(kind, mean, 1.0, config, key=key)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -24,7 +24,8 @@ fitting a body to sparse or noisy data:
 and as the host of (1): S-SCAPE shape coefficients from landmark positions, with a Gaussian prior on
 the coefficients and any extra residual. Both fitters solve in float64 with optimistix
 Levenberg-Marquardt (they require `jax_enable_x64`), are jitted at library level, work on one body
-(vmap over bodies, with `throw=False`) and return a [`bodyprior.dspp.ShapeFit`][].
+(vmap over bodies, with `throw=False`) and return a [`bodyprior.Solution`][] whose `value` is a
+[`bodyprior.dspp.ShapeFit`][].
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._solution import RESULTS, Solution, _check
 from .._validate import check_array, is_tracer
 from ..sscape import SScapeModel, shape_vertices
 from ._nets import PosePrior, ShapePrior
@@ -192,24 +194,26 @@ def pose_prior_residual(
 
 
 class ShapeFit(eqx.Module):
-    """Result of a landmark fit (one body).
+    """The fitted body of a landmark fit (one body; the `value` of its [`bodyprior.Solution`][],
+    whose `result` is the solve's, promoted to [`bodyprior.RESULTS`][], and whose `stats` are
+    `landmark_rms` (root-mean-square 3-D distance of the fitted landmarks to the targets, metres),
+    `energy` (final total energy, the sum of squared residuals) and `num_steps` (solver steps)).
 
     **Fields:**
 
     - `vertices`: fitted mesh, shape `(V, 3)`, metres (float64).
     - `params`: fitted unknowns, shape `(P,)`: shape coefficients in standard deviations
       (`fit_shape_space_to_landmarks`) or the latent code (`fit_latent_to_landmarks`).
-    - `landmark_rms`: root-mean-square 3-D distance of the fitted landmarks to the targets, metres.
-    - `energy`: final value of the total energy (sum of squared residuals).
-    - `result`: `optimistix.RESULTS` of the solve; `num_steps`: solver steps taken.
     """
 
     vertices: Float[Array, "V 3"]
     params: Float[Array, " P"]
-    landmark_rms: Float[Array, ""]
-    energy: Float[Array, ""]
-    result: optx.RESULTS
-    num_steps: Int[Array, ""]
+
+
+def _shape_solution(x, params, idx, targets, r, sol) -> Solution:
+    rms = jnp.sqrt(jnp.mean(jnp.sum((x[idx] - targets) ** 2, axis=-1)))
+    stats = {"landmark_rms": rms, "energy": jnp.sum(r * r), "num_steps": sol.stats["num_steps"]}
+    return Solution(ShapeFit(x, params), RESULTS.promote(sol.result), stats)
 
 
 def _check_landmarks(landmark_index, targets, n_vertices: int):
@@ -235,12 +239,12 @@ def _check_solver_args(noise_sigma, max_steps, rtol, atol):
         raise ValueError(f"`rtol` and `atol` must be positive, got {rtol!r}, {atol!r}.")
 
 
-def _solve(residuals, y0, args, max_steps: int, rtol: float, atol: float, throw: bool):
+def _solve(residuals, y0, args, max_steps: int, rtol: float, atol: float):
     # Damped steps by the normal equations (Cholesky): the Jacobians are tall (up to 3V + 3L rows,
     # at most ~50 columns) and well conditioned by the Tikhonov rows, and this is ~9x cheaper than
     # the default QR of the 19k x 40 Jacobian (measured, same solution).
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-    return optx.least_squares(residuals, solver, y0, args, max_steps=max_steps, throw=throw)
+    return optx.least_squares(residuals, solver, y0, args, max_steps=max_steps, throw=False)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -248,8 +252,7 @@ def _solve(residuals, y0, args, max_steps: int, rtol: float, atol: float, throw:
 
 
 @eqx.filter_jit
-def _fit_space_kernel(model, idx, targets, sigma, coeff_weight, regulariser, max_steps, rtol, atol,
-                      throw):  # fmt: skip
+def _fit_space_kernel(model, idx, targets, sigma, coeff_weight, regulariser, max_steps, rtol, atol):
     model, regulariser = _to_float64((model, regulariser))
     targets = jnp.asarray(targets, jnp.float64)
     # Landmark rows of the basis only (coefficients in standard deviations, as shape_vertices).
@@ -267,12 +270,9 @@ def _fit_space_kernel(model, idx, targets, sigma, coeff_weight, regulariser, max
         return jnp.concatenate(parts)
 
     c0 = jnp.zeros(model.n_components, jnp.float64)
-    sol = _solve(residuals, c0, None, max_steps, rtol, atol, throw)
+    sol = _solve(residuals, c0, None, max_steps, rtol, atol)
     c = sol.value
-    x = shape(c)
-    r = residuals(c, None)
-    rms = jnp.sqrt(jnp.mean(jnp.sum((x[idx] - targets) ** 2, axis=-1)))
-    return ShapeFit(x, c, rms, jnp.sum(r * r), sol.result, sol.stats["num_steps"])
+    return _shape_solution(shape(c), c, idx, targets, residuals(c, None), sol)
 
 
 def fit_shape_space_to_landmarks(
@@ -287,7 +287,7 @@ def fit_shape_space_to_landmarks(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     throw: bool = True,
-) -> ShapeFit:
+) -> Solution:
     """Shape coefficients of a linear shape space from landmark positions (MAP under a Gaussian
     prior), optionally with an extra prior residual such as
     [`bodyprior.dspp.shape_prior_residual`][].
@@ -315,9 +315,12 @@ def fit_shape_space_to_landmarks(
       (like [`bodyprior.dspp.PriorResidual`][]) is traced, so its weights can change without
       recompiling.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt limits and tolerances.
-    - `throw`: raise if the solver fails; use `False` under `jax.vmap` and check `result`.
+    - `throw`: raise if the result is not `RESULTS.successful` (the solver failed, or stopped at
+      `max_steps` without meeting `rtol`/`atol`: a failure, [`bodyprior.Solution`][]'s rule); use
+      `False` under `jax.vmap` and check `sol.result`.
 
-    **Returns:** a [`bodyprior.dspp.ShapeFit`][] (`params` = coefficients `(K,)`).
+    **Returns:** a [`bodyprior.Solution`][]: `value` a [`bodyprior.dspp.ShapeFit`][] (`params` =
+    coefficients `(K,)`); `stats` `landmark_rms`, `energy`, `num_steps`.
 
     **Raises:** `ValueError` for bad shapes or ranges, a non-callable regulariser, or x64 off.
     """
@@ -331,10 +334,11 @@ def fit_shape_space_to_landmarks(
     cw = _check_weight(coeff_weight, "coeff_weight")
     if regulariser is not None and not callable(regulariser):
         raise ValueError(f"`regulariser` must be callable, got {type(regulariser).__name__}.")
-    return _fit_space_kernel(
+    sol = _fit_space_kernel(
         model, jnp.asarray(landmark_index), targets, float(noise_sigma), cw, regulariser,
-        int(max_steps), float(rtol), float(atol), bool(throw),
+        int(max_steps), float(rtol), float(atol),
     )  # fmt: skip
+    return _check(sol, bool(throw), "fit_shape_space_to_landmarks")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -389,7 +393,7 @@ def _landmark_decoder(prior: ShapePrior, idx: Int[Array, " L"]) -> Callable[[Arr
 
 @eqx.filter_jit
 def _fit_latent_kernel(prior, idx, targets, sigma, mu, sd, latent_weight, score_weight, z0,
-                       max_steps, rtol, atol, throw):  # fmt: skip
+                       max_steps, rtol, atol):  # fmt: skip
     prior, mu, sd, z0 = _to_float64((prior, mu, sd, z0))
     targets = jnp.asarray(targets, jnp.float64)
 
@@ -403,12 +407,9 @@ def _fit_latent_kernel(prior, idx, targets, sigma, mu, sd, latent_weight, score_
         ]
         return jnp.concatenate(parts)
 
-    sol = _solve(residuals, z0, None, max_steps, rtol, atol, throw)
+    sol = _solve(residuals, z0, None, max_steps, rtol, atol)
     z = sol.value
-    x = prior.decode(z)
-    r = residuals(z, None)
-    rms = jnp.sqrt(jnp.mean(jnp.sum((x[idx] - targets) ** 2, axis=-1)))
-    return ShapeFit(x, z, rms, jnp.sum(r * r), sol.result, sol.stats["num_steps"])
+    return _shape_solution(prior.decode(z), z, idx, targets, residuals(z, None), sol)
 
 
 def fit_latent_to_landmarks(
@@ -426,7 +427,7 @@ def fit_latent_to_landmarks(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     throw: bool = True,
-) -> ShapeFit:
+) -> Solution:
     """Fits a body to landmarks in the DSPP prior's latent space: vertices are `Dec(z)`.
 
     Minimises over the code `z`
@@ -448,7 +449,8 @@ def fit_latent_to_landmarks(
     - `z0`: optional initial code `(d,)`.
     - `max_steps`, `rtol`, `atol`, `throw`: as in `fit_shape_space_to_landmarks`.
 
-    **Returns:** a [`bodyprior.dspp.ShapeFit`][] (`params` = the code `(d,)`).
+    **Returns:** a [`bodyprior.Solution`][]: `value` a [`bodyprior.dspp.ShapeFit`][] (`params` =
+    the code `(d,)`); `stats` as `fit_shape_space_to_landmarks`.
 
     **Raises:** `ValueError` for bad shapes or ranges, or x64 off.
     """
@@ -465,7 +467,8 @@ def fit_latent_to_landmarks(
     sw = _check_weight(score_weight, "score_weight")
     mu = jnp.asarray(latent_mean)
     z0 = mu if z0 is None else jnp.asarray(check_array(z0, "z0", (d,)))
-    return _fit_latent_kernel(
+    sol = _fit_latent_kernel(
         prior, jnp.asarray(landmark_index), targets, float(noise_sigma), mu,
-        jnp.asarray(latent_std), lw, sw, z0, int(max_steps), float(rtol), float(atol), bool(throw),
+        jnp.asarray(latent_std), lw, sw, z0, int(max_steps), float(rtol), float(atol),
     )  # fmt: skip
+    return _check(sol, bool(throw), "fit_latent_to_landmarks")

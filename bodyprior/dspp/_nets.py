@@ -399,7 +399,7 @@ def geometry_disc_input(kind: str, mean, scale, centre, radius, u: Float[Array, 
     return u
 
 
-def init_aegan(kind: str, mean, scale, config: DSPPConfig, key) -> _AEGANPrior:
+def init_aegan(kind: str, mean, scale, config: DSPPConfig, *, key) -> _AEGANPrior:
     """Freshly initialised (untrained) [`bodyprior.dspp.ShapePrior`][] (`kind="shape"`) or
     [`bodyprior.dspp.PosePrior`][] (`kind="pose"`) for items shaped like `mean`, float32."""
     cls = {"shape": ShapePrior, "pose": PosePrior}.get(kind)
@@ -418,7 +418,7 @@ def init_aegan(kind: str, mean, scale, config: DSPPConfig, key) -> _AEGANPrior:
     return cls(enc, dec, gen, disc, state, mean, jnp.asarray(scale, jnp.float32), c)
 
 
-def init_geometry_gan(kind: str, mean, scale, config: DSPPConfig, key) -> GeometryGAN:
+def init_geometry_gan(kind: str, mean, scale, config: DSPPConfig, *, key) -> GeometryGAN:
     """Freshly initialised [`bodyprior.dspp.GeometryGAN`][] of `kind` `"shape"` or `"pose"`."""
     if kind not in ("shape", "pose"):
         raise ValueError(f"`kind` must be 'shape' or 'pose', got {kind!r}.")

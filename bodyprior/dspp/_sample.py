@@ -129,7 +129,7 @@ def _sample_jit(model, keys):
     return jax.vmap(model.sample)(keys)
 
 
-def sample(model, key, n: int) -> Array:
+def sample(model, n: int, *, key) -> Array:
     """Draws `n` items from a prior, jitted and vmapped over `n` independent keys split from `key`.
 
     **Arguments:**

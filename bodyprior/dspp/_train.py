@@ -32,6 +32,7 @@ import optax
 from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
+from .._solution import RESULTS, Solution, _check
 from .._validate import check_array
 from ._nets import (
     DSPPConfig,
@@ -222,9 +223,9 @@ def _raw_key(key) -> Array:
 def _init_state(kind: str, model_kind: str, mean, scale, cfg: DSPPConfig, key) -> _TrainState:
     k_init, k_train = jr.split(key)
     if model_kind == "aegan":
-        model = init_aegan(kind, mean, scale, cfg, k_init)
+        model = init_aegan(kind, mean, scale, cfg, key=k_init)
     else:
-        model = init_geometry_gan(kind, mean, scale, cfg, k_init)
+        model = init_geometry_gan(kind, mean, scale, cfg, key=k_init)
     adam = _adam(cfg)
     opt_ae = adam.init(_params((model.encoder, model.decoder))) if model_kind == "aegan" else None
     return _TrainState(
@@ -276,6 +277,7 @@ def _train(
     )
     cycle = _aegan_cycle if model_kind == "aegan" else _geometry_cycle
     chunks = [records]
+    result = RESULTS.successful
     t0 = time.perf_counter()
     with tqdm(total=cfg.n_steps, initial=step, desc=f"training {tag}", disable=not progress,
               unit="step") as bar:  # fmt: skip
@@ -297,16 +299,15 @@ def _train(
                 model_kind == "aegan" and not np.all(np.isfinite(rec[:, 0]))
             )
             if bad:
-                if throw:
-                    raise RuntimeError(
-                        f"training {tag}: non-finite loss in steps {step - n}..{step}; "
-                        "lower `learning_rate` or check the data."
-                    )
+                result = RESULTS.nonfinite_loss
+                # Raises here (the one throw rule); with throw=False training stops here.
+                _check(Solution(ts.model, result, {}), throw,
+                       f"training {tag} (non-finite loss in steps {step - n}..{step})")  # fmt: skip
                 break
             if checkpoint_dir is not None and (step % every == 0 or step == cfg.n_steps):
                 save_checkpoint(checkpoint_dir, tag, ts, cfg, key, u, np.concatenate(chunks))
     log = TrainLog.from_records(np.concatenate(chunks), time.perf_counter() - t0)
-    return ts.model, log
+    return Solution(ts.model, result, {"num_steps": np.asarray(log.n_steps)}, log)
 
 
 def train_shape_prior(
@@ -317,7 +318,7 @@ def train_shape_prior(
     checkpoint_dir=None,
     progress: bool = True,
     throw: bool = True,
-) -> tuple[ShapePrior, TrainLog]:
+) -> Solution:
     """Trains a DSPP shape prior (shape auto-encoder + GAN in its latent space).
 
     **Arguments:**
@@ -330,11 +331,12 @@ def train_shape_prior(
       atomically every `config.checkpoint_every` cycles and at the end; if one is there (same
       data, key and network sizes), training resumes from it. `n_steps` may be raised to continue.
     - `progress`: show a tqdm progress bar.
-    - `throw`: raise `RuntimeError` on a non-finite loss; with `False` training stops there and the
-      log says `finite=False`.
+    - `throw`: raise on a non-finite loss (`RESULTS.nonfinite_loss`, the rule of
+      [`bodyprior.Solution`][]); with `False` training stops there, `sol.result` is
+      `RESULTS.nonfinite_loss` and the log says `finite=False`. Running all `n_steps` is success.
 
-    **Returns:** `(prior, log)`: the [`bodyprior.dspp.ShapePrior`][] and a
-    [`bodyprior.dspp.TrainLog`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` the [`bodyprior.dspp.ShapePrior`][], `aux`
+    the [`bodyprior.dspp.TrainLog`][], `stats` `{"num_steps": cycles recorded}`.
     """
     return _train(data, "shape", "aegan", key=key, config=config, checkpoint_dir=checkpoint_dir,
                   progress=progress, throw=throw, name="data")  # fmt: skip
@@ -348,10 +350,11 @@ def train_pose_prior(
     checkpoint_dir=None,
     progress: bool = True,
     throw: bool = True,
-) -> tuple[PosePrior, TrainLog]:
+) -> Solution:
     """Trains a DSPP pose prior on Euler angles `(N, 20, 3)` (radians, `EULER_ORDER`, joints
     `POSE_JOINTS`, e.g. `PoseSet.euler`). Arguments and checkpointing (`aegan_pose.ckpt`) as
-    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** `(PosePrior, TrainLog)`."""
+    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** a [`bodyprior.Solution`][] (`value` the
+    `PosePrior`, `aux` the `TrainLog`)."""
     return _train(data, "pose", "aegan", key=key, config=config, checkpoint_dir=checkpoint_dir,
                   progress=progress, throw=throw, name="data")  # fmt: skip
 
@@ -365,13 +368,13 @@ def train_geometry_gan(
     checkpoint_dir=None,
     progress: bool = True,
     throw: bool = True,
-) -> tuple[GeometryGAN, TrainLog]:
+) -> Solution:
     """Trains the geometry-space GAN baseline (paper Fig. 4): a generator that outputs geometry,
     against a discriminator on the geometry (PointNet for `kind="shape"`, data `(N, V, 3)`; MLP on
     Euler angles for `kind="pose"`, data `(N, 20, 3)`). Same cycle minus the auto-encoder step;
     other arguments and checkpointing (`geomgan_<kind>.ckpt`) as
-    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** `(GeometryGAN, TrainLog)`
-    (`log.ae_loss` is NaN)."""
+    [`bodyprior.dspp.train_shape_prior`][]. **Returns:** a [`bodyprior.Solution`][] (`value` the
+    `GeometryGAN`, `aux` the `TrainLog`; `log.ae_loss` is NaN)."""
     if kind not in ("shape", "pose"):
         raise ValueError(f"`kind` must be 'shape' or 'pose', got {kind!r}.")
     return _train(data, kind, "geomgan", key=key, config=config, checkpoint_dir=checkpoint_dir,

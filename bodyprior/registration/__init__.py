@@ -77,7 +77,7 @@ from ._nrd import (
     NRDConfig as NRDConfig,
 )
 from ._nrd import (
-    NRDResult as NRDResult,
+    NRDFit as NRDFit,
 )
 from ._nrd import (
     nrd as nrd,

@@ -473,10 +473,10 @@ DEPTH_LANDMARKS = (
 
 
 def depth_landmarks(
-    key,
     landmark_positions,
     landmark_names,
     *,
+    key,
     subset: tuple[str, ...] = DEPTH_LANDMARKS,
     sigma: float = 0.01,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -501,7 +501,9 @@ def depth_landmarks(
     return np.where(mask[:, None], lm + noise, 0.0), mask
 
 
-def capture_poses(key, joint_names, rest_joints, n: int, *, jitter_deg: float = 4.0) -> np.ndarray:
+def capture_poses(
+    joint_names, rest_joints, n: int, *, key, jitter_deg: float = 4.0
+) -> np.ndarray:
     """Random non-trivial standing poses for depth capture, axis-angle `(n, J, 3)` (world axes).
 
     Each pose spreads both arms sideways and up from the A-pose by U(15, 60) degrees
@@ -553,13 +555,13 @@ def capture_poses(key, joint_names, rest_joints, n: int, *, jitter_deg: float = 
 
 
 def simulate_depth_scan(
-    key,
     vertices,
     faces,
     camera: DepthCamera,
     landmark_positions,
     landmark_names,
     *,
+    key,
     n_points: int | None = 8192,
     noise_sigma: float = 0.0015,
     landmark_sigma: float = 0.01,
@@ -583,7 +585,7 @@ def simulate_depth_scan(
         max_incidence_deg=max_incidence_deg,
     )  # fmt: skip
     lms, lmask = depth_landmarks(
-        k_lm, landmark_positions, landmark_names, subset=landmark_subset, sigma=landmark_sigma
+        landmark_positions, landmark_names, subset=landmark_subset, sigma=landmark_sigma, key=k_lm
     )
     seed = int(jr.randint(k_sub, (), 0, 2**31 - 1))
     scan = depth_to_scan(

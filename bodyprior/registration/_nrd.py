@@ -38,10 +38,10 @@ area-weighted vertex normals):
   nearest point lies on a facing surface (e.g. the torso beside an arm);
 - head vertices (humanshape `getNNheadAndBody`): a plane through three template vertices on the
   neck boundary of the `Head` bone's region, carried along with the deformation, splits template
-  and scan. Head vertices above it (within `tmpl.head_mask`) take the closest scan point above
+  and scan. Head vertices above it (within `template.head_mask`) take the closest scan point above
   the plane within `head_max_dist_mm` (50 mm) whose displacement lies in a `head_cone_deg` (30°)
   cone around the outward vertex normal: the head can only be pushed outwards (hair, caps, holes);
-- hand vertices (`tmpl.hand_mask`): `α = γ = 0` (paper §4.1); smoothness only.
+- hand vertices (`template.hand_mask`): `α = γ = 0` (paper §4.1); smoothness only.
 
 Both are exact radius searches on a uniform grid of the scan points built once per call (sorted
 cell keys; the candidate runs of all queries processed in fixed-size chunks, so the work is the
@@ -96,17 +96,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import vertex_normals
+from .._solution import RESULTS, Solution, _check
 from .._topology import Topology
 from .._validate import check_array
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
 from ._template import RegistrationTemplate
 
-__all__ = ["NRDConfig", "NRDResult", "nrd", "nrd_batch"]
+__all__ = ["NRDConfig", "NRDFit", "nrd", "nrd_batch"]
 
 _MM = 1000.0  # metres -> millimetres
 
@@ -210,11 +210,9 @@ class NRDConfig(eqx.Module):
         return max(n, 1)
 
 
-class NRDResult(eqx.Module):
-    """Output of [`bodyprior.registration.nrd`][] for one scan (a leading batch axis from `nrd_batch`).
-
-    Per-round arrays have `R = 1 + config.n_data_rounds` entries (round 0 = landmarks and smoothness
-    only); rounds not run (early stop) hold NaN (`-1` for integers).
+class NRDFit(eqx.Module):
+    """The deformed template of [`bodyprior.registration.nrd`][] for one scan (the `value` of its
+    [`bodyprior.Solution`][]; a leading batch axis from `nrd_batch`).
 
     **Fields:**
 
@@ -223,32 +221,12 @@ class NRDResult(eqx.Module):
       in metres.
     - `valid`: shape `(V,)`, vertices with a compatible scan point in the last round.
     - `matches`: shape `(V,)`, index of that scan point (`-1` where not valid).
-    - `energy`: `E` at each round's solution, shape `(R,)`, mm² (humanshape-normalised).
-    - `data_term`: `E_d` (mean squared matched distance, mm²) at each round's solution, `(R,)`.
-    - `mean_distance_mm`: mean matched distance after each round (humanshape's `err`), `(R,)`.
-    - `n_valid`: number of matched vertices per round, `(R,)` (0 in round 0).
-    - `smooth_weight`, `landmark_weight`: body `β` and `γ` used in each round, `(R,)`.
-    - `cg_steps`: conjugate-gradient steps per round, `(R,)`.
-    - `cg_residual`: final relative preconditioned residual of each round's solve, `(R,)`.
-    - `n_rounds`: rounds run, including round 0 (int array).
-    - `result`: `optimistix.RESULTS` (`successful`, or `max_steps_reached` if a round's solve hit
-      `cg_max_steps` without reaching `cg_rtol`).
     """
 
     vertices: Float[Array, "V 3"]
     transforms: Float[Array, "V 3 4"]
     valid: Bool[Array, " V"]
     matches: Int[Array, " V"]
-    energy: Float[Array, " R"]
-    data_term: Float[Array, " R"]
-    mean_distance_mm: Float[Array, " R"]
-    n_valid: Int[Array, " R"]
-    smooth_weight: Float[Array, " R"]
-    landmark_weight: Float[Array, " R"]
-    cg_steps: Int[Array, " R"]
-    cg_residual: Float[Array, " R"]
-    n_rounds: Int[Array, ""]
-    result: optx.RESULTS
 
 
 # --------------------------------------------------------------------------------------------------
@@ -702,19 +680,17 @@ def _run(init, prep: _Prep, lm_v, lm_use, points, normals, pmask, landmarks, lma
     t = A[:, :, 3] / _MM + centre - lin @ centre
     transforms = jnp.concatenate([lin, t[:, :, None]], axis=2)
     failed = jnp.any((stats["cg_steps"] >= cfg.cg_max_steps) & (stats["cg_residual"] > cfg.cg_rtol))
-    result = optx.RESULTS.where(failed, optx.RESULTS.max_steps_reached, optx.RESULTS.successful)
-    result = optx.RESULTS.where(jnp.all(jnp.isfinite(y)), result, optx.RESULTS.nonfinite)
-    return NRDResult(
-        vertices=y / _MM + centre,
-        transforms=transforms,
-        valid=valid,
-        matches=idx,
+    result = RESULTS.where(failed, RESULTS.max_steps_reached, RESULTS.successful)
+    result = RESULTS.where(jnp.all(jnp.isfinite(y)), result, RESULTS.nonfinite)
+    fit = NRDFit(vertices=y / _MM + centre, transforms=transforms, valid=valid, matches=idx)
+    stats = dict(
+        stats,
         smooth_weight=jnp.where(jnp.arange(n_rounds) < r, beta, jnp.nan),
         landmark_weight=jnp.where(jnp.arange(n_rounds) < r, gamma, jnp.nan),
-        n_rounds=r,
-        result=result,
-        **stats,
+        rounds=r,
+        num_steps=jnp.sum(jnp.maximum(stats["cg_steps"], 0)),
     )
+    return Solution(fit, result, stats)
 
 
 @eqx.filter_jit
@@ -754,19 +730,21 @@ def _scan_arrays(scan, batched: bool):
     return arrays
 
 
-def _landmark_map(tmpl: RegistrationTemplate, names) -> tuple[Array, Array]:
+def _landmark_map(template: RegistrationTemplate, names) -> tuple[Array, Array]:
     """Template vertex of each scan landmark (by name) and whether it may be used."""
-    where = {n: i for i, n in enumerate(tmpl.landmark_names)}
-    lm_idx = np.asarray(tmpl.landmark_index)
-    hand = np.asarray(tmpl.hand_mask, bool)
+    where = {n: i for i, n in enumerate(template.landmark_names)}
+    lm_idx = np.asarray(template.landmark_index)
+    hand = np.asarray(template.hand_mask, bool)
     v = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int32)
     use = np.array([n in where for n in names], bool) & ~hand[v]  # γ = 0 on hand vertices
     return jnp.asarray(v), jnp.asarray(use)
 
 
-def _check_inputs(init_vertices, tmpl, config, batched: bool):
-    if not isinstance(tmpl, RegistrationTemplate):
-        raise ValueError(f"`tmpl` must be a RegistrationTemplate, got {type(tmpl).__name__}.")
+def _check_inputs(init_vertices, template, config, batched: bool):
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
+        )
     if not isinstance(config, NRDConfig):
         raise ValueError(f"`config` must be an NRDConfig, got {type(config).__name__}.")
     if not jax.config.jax_enable_x64:
@@ -775,7 +753,7 @@ def _check_inputs(init_vertices, tmpl, config, batched: bool):
             "`jax.config.update('jax_enable_x64', True)`."
         )
     lead = ("B",) if batched else ()
-    init = check_array(init_vertices, "init_vertices", (*lead, tmpl.n_vertices, 3))
+    init = check_array(init_vertices, "init_vertices", (*lead, template.n_vertices, 3))
     return jnp.asarray(init, jnp.float64)
 
 
@@ -787,12 +765,12 @@ def _dtype_cast(init, arrays):
 
 def nrd(
     init_vertices: Float[Array, "V 3"],
-    tmpl: RegistrationTemplate,
     scan,
+    template: RegistrationTemplate,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
-) -> NRDResult:
+) -> Solution:
     """Non-rigid template fitting (NRD) of the template to one scan (see the module docstring).
 
     The whole schedule (all rounds, correspondences recomputed in each) is one jitted call; calls
@@ -802,60 +780,65 @@ def nrd(
     **Arguments:**
 
     - `init_vertices`: the template mesh to deform, shape `(V, 3)`, metres, in the scan frame and
-      in correspondence with `tmpl` (`V = tmpl.n_vertices`). "NRD": the static template aligned to
-      the scan by the landmark similarity (`fit_similarity(...).apply(tmpl.vertices)`); "S-SCAPE +
-      NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks, hand/head masks).
+      in correspondence with `template` (`V = template.n_vertices`). "NRD": the static template
+      aligned to the scan by the landmark similarity
+      (`fit_similarity(...).apply(template.vertices)`); "S-SCAPE + NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
     - `scan`: a [`bodyprior.registration.Scan`][] (points, unit normals, masks, landmarks in metres);
       landmarks are matched to the template's by name, missing ones are ignored.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks,
+      hand/head masks).
     - `config`: an [`bodyprior.registration.NRDConfig`][]; `NRDConfig(constant_weights=True)` is NRD CW.
-    - `throw`: raise if a round's solve did not converge (else inspect `result`).
+    - `throw`: raise if the result is not `RESULTS.successful`: a round's linear solve hit
+      `cg_max_steps` without reaching `cg_rtol` (`max_steps_reached`), or non-finite vertices
+      (else inspect `sol.result`). Using all rounds of the schedule is not a failure (the rule is
+      [`bodyprior.Solution`][]'s).
 
-    **Returns:** an [`bodyprior.registration.NRDResult`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` an [`bodyprior.registration.NRDFit`][];
+    `stats` a dict of per-round arrays with `R = 1 + config.n_data_rounds` entries (round 0 =
+    landmarks and smoothness only; rounds not run, after an early stop, hold NaN, `-1` for
+    integers): `energy` (`E` at each round's solution, mm², humanshape-normalised), `data_term`
+    (`E_d`, mean squared matched distance, mm²), `mean_distance_mm` (mean matched distance after
+    each round, humanshape's `err`), `n_valid` (matched vertices; 0 in round 0), `smooth_weight`,
+    `landmark_weight` (body `β` and `γ` of each round), `cg_steps` (conjugate-gradient steps),
+    `cg_residual` (final relative preconditioned residual of each round's solve); and scalars
+    `rounds` (rounds run, including round 0) and `num_steps` (CG steps in all).
 
     **Raises:** `ValueError` for inputs of the wrong shape/type, non-finite values, or a scan
     without valid points.
     """
-    init = _check_inputs(init_vertices, tmpl, config, batched=False)
+    init = _check_inputs(init_vertices, template, config, batched=False)
     arrays = _scan_arrays(scan, batched=False)
-    lm_v, lm_use = _landmark_map(tmpl, scan.landmark_names)
-    prep = _prepare(tmpl, config.n_patches)
-    out = _nrd_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
-    if throw:
-        out = eqx.tree_at(
-            lambda o: o.vertices,
-            out,
-            out.result.error_if(out.vertices, out.result != optx.RESULTS.successful),
-        )
-    return out
+    lm_v, lm_use = _landmark_map(template, scan.landmark_names)
+    prep = _prepare(template, config.n_patches)
+    sol = _nrd_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
+    return _check(sol, bool(throw), "NRD")
 
 
 def nrd_batch(
     init_vertices: Float[Array, "B V 3"],
-    tmpl: RegistrationTemplate,
     scans,
+    template: RegistrationTemplate,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
-) -> NRDResult:
+) -> Solution:
     """[`bodyprior.registration.nrd`][] for a batch of scans at once (`jax.vmap`, one jitted call).
 
     **Arguments:** as `nrd`, with a leading batch axis `B` on `init_vertices` and on every array of
     `scans` (padded point clouds; padding has `point_mask = False`).
 
-    **Returns:** an [`bodyprior.registration.NRDResult`][] whose arrays have a leading axis `B`.
+    **Returns:** a [`bodyprior.Solution`][] whose arrays have a leading axis `B` (`result` too:
+    one per scan). With `throw=True` it raises once, naming the failed scans; with `False`, one
+    failed scan leaves the others' results usable.
     """
-    init = _check_inputs(init_vertices, tmpl, config, batched=True)
+    init = _check_inputs(init_vertices, template, config, batched=True)
     arrays = _scan_arrays(scans, batched=True)
     if arrays[0].shape[0] != init.shape[0]:
         raise ValueError(
             f"`init_vertices` has {init.shape[0]} meshes but `scans` has "
             f"{arrays[0].shape[0]} scans."
         )
-    lm_v, lm_use = _landmark_map(tmpl, scans.landmark_names)
-    prep = _prepare(tmpl, config.n_patches)
-    out = _nrd_batch_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
-    if throw:
-        bad = out.result != optx.RESULTS.successful
-        out = eqx.tree_at(lambda o: o.vertices, out, out.result.error_if(out.vertices, bad))
-    return out
+    lm_v, lm_use = _landmark_map(template, scans.landmark_names)
+    prep = _prepare(template, config.n_patches)
+    sol = _nrd_batch_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
+    return _check(sol, bool(throw), "NRD")

@@ -497,12 +497,13 @@ def _holes(rng, pts: np.ndarray, fraction: float, radius: float) -> np.ndarray:
 
 
 def simulate_scan(
-    key,
     vertices: Float[Array, "V 3"],
     faces: Int[Array, "F 3"],
     landmark_positions: Float[Array, "L 3"],
     landmark_names: Sequence[str],
     config: ScannerConfig = ScannerConfig(),
+    *,
+    key,
 ) -> tuple[Scan, ScanTruth]:
     """Scans one body with the virtual laser scanner (host-side NumPy + Embree; not jittable).
 
@@ -653,7 +654,6 @@ def pad_scans(
 
 
 def simulate_scans(
-    key,
     population_vertices: Float[Array, "N V 3"],
     faces: Int[Array, "F 3"],
     landmark_index: Int[Array, " L"],
@@ -661,6 +661,7 @@ def simulate_scans(
     config: ScannerConfig = ScannerConfig(),
     n_points: int | None = None,
     *,
+    key,
     progress: bool = True,
 ) -> tuple[Scan, ScanTruth]:
     """Scans a population (a host loop over [`bodyprior.registration.simulate_scan`][] with tqdm).
@@ -691,7 +692,7 @@ def simulate_scans(
     scans, truths = [], []
     for i in tqdm(range(pv.shape[0]), desc="scanning", disable=not progress, unit="scan"):
         s, t = simulate_scan(
-            jax.random.fold_in(key, i), pv[i], faces, pv[i][li], landmark_names, config
+            pv[i], faces, pv[i][li], landmark_names, config, key=jax.random.fold_in(key, i)
         )
         scans.append(s)
         truths.append(t)

@@ -128,7 +128,7 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
     head = mass(lambda n: n in ("Head", "Neck", "Neck1")) > 0.5
 
     # Joint regressor over the template vertices, fitted on adult bodies with exact joints.
-    phen, _, _ = sample_phenotypes(jr.PRNGKey(1234), n_fit + n_fit // 2)
+    phen, _, _ = sample_phenotypes(n_fit + n_fit // 2, key=jr.PRNGKey(1234))
     verts, joints = jax.jit(jax.vmap(lambda p: rest_shape(body, p)))(phen)
     verts = np.asarray(verts, np.float64)[:, vertex_map]
     joints = np.asarray(joints, np.float64)

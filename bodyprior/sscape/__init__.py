@@ -46,9 +46,6 @@ from ._fit import (
     FitConfig as FitConfig,
 )
 from ._fit import (
-    FitResult as FitResult,
-)
-from ._fit import (
     SScapeFit as SScapeFit,
 )
 from ._fit import (

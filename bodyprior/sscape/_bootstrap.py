@@ -116,13 +116,13 @@ class GateResult(NamedTuple):
     part_names: tuple[str, ...]
 
 
-def body_parts(tmpl: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
+def body_parts(template: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
     """Body-part label of every template vertex, `(V,)` int (`-1` = hands, not judged), and the
     part names (vertices grouped by their dominant skinning bone)."""
-    sw = np.asarray(tmpl.skin_weight)
-    si = np.asarray(tmpl.skin_index)
+    sw = np.asarray(template.skin_weight)
+    si = np.asarray(template.skin_index)
     bone = si[np.arange(si.shape[0]), sw.argmax(1)]
-    names = tmpl.joint_names
+    names = template.joint_names
     bone_part = np.full(len(names), -1)
     for j, n in enumerate(names):
         for p, (_, words) in enumerate(_PARTS):
@@ -130,14 +130,14 @@ def body_parts(tmpl: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]
                 bone_part[j] = p
                 break
     label = bone_part[bone]
-    label[np.asarray(tmpl.hand_mask)] = -1
+    label[np.asarray(template.hand_mask)] = -1
     return label, tuple(p for p, _ in _PARTS)
 
 
 def registration_gate(
     vertices: Float[Array, "N V 3"],
     scans,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: GateConfig = GateConfig(),
     errors=None,
@@ -148,7 +148,8 @@ def registration_gate(
 
     - `vertices`: registrations `(N, V, 3)`, metres, scan frame.
     - `scans`: the batched [`bodyprior.registration.Scan`][] they were fitted to.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, hands, skinning for parts).
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, hands, skinning
+      for parts).
     - `config`: a [`bodyprior.sscape.GateConfig`][].
     - `errors`: optional precomputed [`bodyprior.registration.FittingError`][] (batched) with the same
       `max_dist`/`max_angle_deg`, to avoid recomputing it.
@@ -159,14 +160,16 @@ def registration_gate(
         raise ValueError(f"`config` must be a GateConfig, got {type(config).__name__}.")
     if errors is None:
         errors = fitting_error_batch(
-            vertices, scans, faces=tmpl.faces, max_dist=config.max_dist,
+            vertices, scans, faces=template.faces, max_dist=config.max_dist,
             max_angle_deg=config.max_angle_deg,
         )  # fmt: skip
     e = np.asarray(errors.error_mm, np.float64)
     ok = np.asarray(errors.valid, bool)
-    if e.ndim != 2 or e.shape[1] != tmpl.n_vertices:
-        raise ValueError(f"`vertices` must have shape (N, {tmpl.n_vertices}, 3), got {e.shape}.")
-    label, names = body_parts(tmpl)
+    if e.ndim != 2 or e.shape[1] != template.n_vertices:
+        raise ValueError(
+            f"`vertices` must have shape (N, {template.n_vertices}, 3), got {e.shape}."
+        )
+    label, names = body_parts(template)
     judged = label >= 0
     within = ok & (e <= config.threshold_mm)
     frac = within[:, judged].mean(1)
@@ -189,7 +192,7 @@ def registration_gate(
 def calibrate_gate(
     reference_meshes: Float[Array, "N V 3"],
     scans,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     fraction_margin: float = 0.05,
     part_margin: float = 0.15,
@@ -211,7 +214,7 @@ def calibrate_gate(
 
     **Returns:** a [`bodyprior.sscape.GateConfig`][] (other fields from `base`).
     """
-    g = registration_gate(reference_meshes, scans, tmpl, config=base)
+    g = registration_gate(reference_meshes, scans, template, config=base)
     return dataclasses.replace(
         base,
         min_fraction=float(np.clip(g.fraction.min() - fraction_margin, 0.0, 1.0)),
@@ -238,7 +241,7 @@ class Registration(NamedTuple):
 def register_sscape_nrd(
     model: SScapeModel,
     scans,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     fit_config=None,
     nrd_config=None,
@@ -256,13 +259,15 @@ def register_sscape_nrd(
 
     fit_config = FitConfig() if fit_config is None else fit_config
     nrd_config = NRDConfig() if nrd_config is None else nrd_config
-    fits = fit_sscape_batch(model, scans, tmpl, config=fit_config, progress=progress, throw=False)
+    fits = fit_sscape_batch(
+        model, scans, template, config=fit_config, progress=progress, throw=False
+    ).value
     n = scans.points.shape[0]
     out = []
     for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
-        r = nrd(jnp.asarray(fits.vertices[i]), tmpl, scan_i, config=nrd_config, throw=False)
-        out.append(np.asarray(r.vertices))
+        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, template, config=nrd_config, throw=False)
+        out.append(np.asarray(r.value.vertices))
     return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
 
 
@@ -292,9 +297,9 @@ def _learn_from(meshes, tmpl, n_components):
 
 
 def bootstrap(
-    scans,
-    tmpl: RegistrationTemplate,
     init_model: SScapeModel,
+    scans,
+    template: RegistrationTemplate,
     *,
     n_passes: int = 5,
     n_components: int = 20,
@@ -316,9 +321,9 @@ def bootstrap(
 
     **Arguments:**
 
-    - `scans`: batched [`bodyprior.registration.Scan`][].
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `init_model`: the initial space (learned on a separate, smaller data set).
+    - `scans`: batched [`bodyprior.registration.Scan`][].
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `n_passes`: passes (paper: 5).
     - `n_components`: components of the learned spaces.
     - `gate`: a [`bodyprior.sscape.GateConfig`][].
@@ -333,26 +338,27 @@ def bootstrap(
         raise ValueError(f"`n_passes` must be a positive int, got {n_passes!r}.")
     if not isinstance(init_model, SScapeModel):
         raise ValueError(f"`init_model` must be an SScapeModel, got {type(init_model).__name__}.")
-    if init_model.n_vertices != tmpl.n_vertices:
+    if init_model.n_vertices != template.n_vertices:
         raise ValueError(
-            f"`init_model` has {init_model.n_vertices} vertices, the template {tmpl.n_vertices}."
+            f"`init_model` has {init_model.n_vertices} vertices, the template "
+            f"{template.n_vertices}."
         )
     if register is None:
 
         def register(model, s):
             return register_sscape_nrd(
-                model, s, tmpl, fit_config=fit_config, nrd_config=nrd_config, progress=progress
+                model, s, template, fit_config=fit_config, nrd_config=nrd_config, progress=progress
             )
 
     model = init_model
     passes = []
     for r in range(n_passes):  # host loop over passes; each stage is a jitted batched call
         reg = register(model, scans)
-        g = registration_gate(reg.vertices, scans, tmpl, config=gate)
+        g = registration_gate(reg.vertices, scans, template, config=gate)
         p = BootstrapPass(model, reg, g, int(g.accepted.sum()))
         passes.append(p)
         if callback is not None:
             callback(r, p)
         if p.n_accepted >= 2:
-            model = _learn_from(reg.vertices[g.accepted], tmpl, n_components)
+            model = _learn_from(reg.vertices[g.accepted], template, n_components)
     return BootstrapResult(tuple(passes), model)

@@ -15,16 +15,17 @@ from jaxtyping import Array, Float
 
 from .._geometry import vertex_normals
 from .._kinematics import Similarity
+from .._solution import RESULTS, Solution, _check
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
 from ..registration._template import RegistrationTemplate
 from ._fit import (
     _MM,
     FitConfig,
-    FitResult,
     _bounded,
     _correspondences,
     _lm_solve,
+    _pass_loop,
     _prepare,
     _umeyama_masked,
 )
@@ -93,9 +94,10 @@ class DepthFitConfig:
 
 
 class DepthFit(eqx.Module):
-    """Result of [`bodyprior.sscape.fit_depth`][]: one shape, a pose per image (0 front, 1 back).
+    """The fitted body of [`bodyprior.sscape.fit_depth`][] (the `value` of its
+    [`bodyprior.Solution`][]): one shape, a pose per image (0 front, 1 back).
 
-    **Fields** (V vertices, J joints, K components, N = `max_rounds + 1`):
+    **Fields** (V vertices, J joints, K components):
 
     - `coeffs`: the shared shape coefficients, shape `(K,)`, standard deviations.
     - `poses`: per-image local joint rotations, axis-angle, shape `(2, J, 3)`.
@@ -106,14 +108,6 @@ class DepthFit(eqx.Module):
       multiply by `scale` for the subject's size.
     - `scale`: the shared global scale, shape `()`.
     - `init_vertices`: the meshes after stage 1 (mean shape, landmark poses), shape `(2, V, 3)`.
-    - `result`: a [`bodyprior.sscape.FitResult`][] (`max_passes_reached` = the joint stage used all
-      `max_rounds`; not an error).
-    - `stats`: dict: `data_term` `(N,)` (mm^2: sum over both images of the model -> scan truncated
-      quadratic plus `scan_weight` times the scan -> model one; after the start and after each
-      round, NaN after the last), `mean_distance_mm` `(N,)` (mean valid distance, both directions
-      and images), `rounds`, `converged`, `model_to_scan_mm` `(2,)`, `scan_to_model_mm` `(2,)`
-      (final mean valid distances per image), `valid_fraction` `(2,)` (scan points with a valid
-      model partner), `landmark_rms_mm` `(2,)`, `solver_steps`.
     """
 
     coeffs: Float[Array, " K"]
@@ -123,8 +117,6 @@ class DepthFit(eqx.Module):
     rest_vertices: Float[Array, "V 3"]
     scale: Float[Array, ""]
     init_vertices: Float[Array, "2 V 3"]
-    result: FitResult
-    stats: dict
 
 
 def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitConfig):
@@ -310,42 +302,29 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
     u0 = jnp.zeros((K,), dtype)
     init_vertices = meshes(u0, poses0, ts0, ls0)
     corr0, term0, mean0, _ = measure(u0, poses0, ts0, ls0)
-    nan = jnp.full((cfg.max_rounds + 1,), jnp.nan, dtype)
 
-    def cond(s):
-        i, *_, done, bad, _ = s
-        return (i < cfg.max_rounds) & ~done & ~bad
-
-    def body(s):
-        i, u, poses, ts, ls, corr, hist, dhist, done, bad, steps = s
+    def step(params, corr):
+        u, poses, ts, ls = params
         if cfg.joint:
-            u, poses, ts, ls, bad2, k2 = joint_solve(u, poses, ts, ls, corr)
-            bad1, k1 = jnp.asarray(False), jnp.asarray(0)
+            u, poses, ts, ls, bad, k = joint_solve(u, poses, ts, ls, corr)
         else:
             poses, ts, bad1, k1 = pose_solve(_bounded(u, b), poses, ts, ls, corr)
             corr, _, _, _ = measure(u, poses, ts, ls)
             u, ls, bad2, k2 = shape_solve(u, poses, ts, ls, corr)
-        corr, term, mean_d, _ = measure(u, poses, ts, ls)
-        prev, prev_d = hist[i], dhist[i]
-        done = (jnp.abs(prev - term) <= cfg.rtol * prev) | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
-        bad = bad | jnp.any(bad1) | bad2 | ~jnp.isfinite(term)
-        hist, dhist = hist.at[i + 1].set(term), dhist.at[i + 1].set(mean_d)
-        return i + 1, u, poses, ts, ls, corr, hist, dhist, done, bad, steps + jnp.sum(k1) + k2
+            bad, k = jnp.any(bad1) | bad2, jnp.sum(k1) + k2
+        return (u, poses, ts, ls), bad, k
 
-    state = (
-        jnp.asarray(0), u0, poses0, ts0, ls0, corr0, nan.at[0].set(term0), nan.at[0].set(mean0),
-        jnp.asarray(False), jnp.any(bad0) | ~jnp.isfinite(term0), jnp.sum(steps0),
+    rounds, (u, poses, ts, ls), corr, hist, dhist, done, bad, steps = _pass_loop(
+        step, lambda p: measure(*p)[:3], (u0, poses0, ts0, ls0), corr0, term0, mean0,
+        jnp.any(bad0), jnp.sum(steps0), max_passes=cfg.max_rounds, rtol=cfg.rtol,
+        atol_mm=cfg.atol_mm, undo_worse=False, dtype=dtype,
     )  # fmt: skip
-    rounds, u, poses, ts, ls, corr, hist, dhist, done, bad, steps = jax.lax.while_loop(
-        cond, body, state
-    )
     coeffs = _bounded(u, b)
     verts = meshes(u, poses, ts, ls)
     _, _, _, info = measure(u, poses, ts, ls)
     finite = jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs))
-    result = FitResult.where(done, FitResult.successful, FitResult.max_passes_reached)
-    result = FitResult.where(bad, FitResult.solver_failed, result)
-    result = FitResult.where(finite, result, FitResult.nonfinite)
+    result = RESULTS.where(bad, RESULTS.solver_failed, RESULTS.successful)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
     lm_err = jnp.linalg.norm(verts[:, st.lm_vertex] - lm_target, axis=-1) * _MM
     stats = {
         "data_term": hist,
@@ -356,9 +335,9 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
         "scan_to_model_mm": info["mean_s"],
         "valid_fraction": info["frac_s"],
         "landmark_rms_mm": jnp.sqrt(jnp.sum(lm_w * lm_err**2, -1) / n_lm),
-        "solver_steps": steps,
+        "num_steps": steps,
     }
-    return DepthFit(
+    fit = DepthFit(
         coeffs=coeffs,
         poses=poses,
         similarities=Similarity(R, ts, jnp.broadcast_to(ls, (2,))),
@@ -366,29 +345,24 @@ def _fit_depth_kernel(model: SScapeModel, scans: Scan, st, pose0, cfg: DepthFitC
         rest_vertices=shape_vertices(model, coeffs),
         scale=jnp.exp(ls),
         init_vertices=init_vertices,
-        result=result,
-        stats=stats,
     )
+    return Solution(fit, result, stats)
 
 
 @eqx.filter_jit
-def _fit_depth_jit(model, scans, st, pose0, cfg, throw):
-    fit = _fit_depth_kernel(model, scans, st, pose0, cfg)
-    if throw:
-        failed = (fit.result == FitResult.solver_failed) | (fit.result == FitResult.nonfinite)
-        fit = fit.result.error_if(fit, failed)
-    return fit
+def _fit_depth_jit(model, scans, st, pose0, cfg):
+    return _fit_depth_kernel(model, scans, st, pose0, cfg)
 
 
 def fit_depth(
     model: SScapeModel,
     front_scan: Scan,
     back_scan: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: DepthFitConfig = DepthFitConfig(),
     throw: bool = True,
-) -> DepthFit:
+) -> Solution:
     """Fits one S-SCAPE shape and a pose per image to a front and a back depth scan.
 
     The procedure of the paper's §6 (after Helten et al. 2013; humanshape `fitPoseShapeJoint`,
@@ -420,16 +394,24 @@ def fit_depth(
 
     **Arguments:**
 
-    - `model`: an [`bodyprior.sscape.SScapeModel`][] on `tmpl`'s topology.
+    - `model`: an [`bodyprior.sscape.SScapeModel`][] on `template`'s topology.
     - `front_scan`, `back_scan`: one [`bodyprior.registration.Scan`][] each (e.g. from
       [`bodyprior.registration.depth_to_scan`][]), world frame, metres, normals facing their camera, each
-      with at least 4 landmarks known to `tmpl` (the paper placed 14 by hand). They are padded to a
-      common point count if needed.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][].
+      with at least 4 landmarks known to `template` (the paper placed 14 by hand). They are padded
+      to a common point count if needed.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][].
     - `config`: a [`bodyprior.sscape.DepthFitConfig`][].
-    - `throw`: raise if a solve failed or the result is not finite; otherwise inspect `result`.
+    - `throw`: raise if a solve failed or the result is not finite (`result` not
+      `RESULTS.successful`); otherwise inspect `sol.result`. Using all `max_rounds` is not a
+      failure (`stats["converged"]` is False then; the rule is [`bodyprior.Solution`][]'s).
 
-    **Returns:** a [`bodyprior.sscape.DepthFit`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` a [`bodyprior.sscape.DepthFit`][]; `stats`
+    a dict (N = `max_rounds + 1`): `data_term` `(N,)` (mm^2: sum over both images of the model ->
+    scan truncated quadratic plus `scan_weight` times the scan -> model one; after the start and
+    after each round, NaN after the last), `mean_distance_mm` `(N,)` (mean valid distance, both
+    directions and images), `rounds`, `converged`, `model_to_scan_mm` `(2,)`, `scan_to_model_mm`
+    `(2,)` (final mean valid distances per image), `valid_fraction` `(2,)` (scan points with a
+    valid model partner), `landmark_rms_mm` `(2,)`, `num_steps` (total LM steps).
 
     **Raises:** `ValueError` (before tracing) for a wrong model/template/config, scans that are not
     `Scan`s, have different landmark names, NaN points, or fewer than 4 usable landmarks.
@@ -448,8 +430,8 @@ def fit_depth(
         check_scan(sc, min_points=1, name=name)
     if front_scan.landmark_names != back_scan.landmark_names:
         raise ValueError("`front_scan` and `back_scan` must have the same `landmark_names`.")
-    if isinstance(tmpl, RegistrationTemplate):
-        known = np.array([n in tmpl.landmark_names for n in front_scan.landmark_names], bool)
+    if isinstance(template, RegistrationTemplate):
+        known = np.array([n in template.landmark_names for n in front_scan.landmark_names], bool)
         for name, sc in (("front_scan", front_scan), ("back_scan", back_scan)):
             count = int((np.asarray(sc.landmark_mask, bool).reshape(-1) & known).sum())
             if count < 4:
@@ -458,5 +440,6 @@ def fit_depth(
                     f"(the paper placed 14 by hand on each depth image), got {count}."
                 )
     scans = pad_scans([front_scan, back_scan])
-    model, st, _, pose, _ = _prepare(model, scans, tmpl, config.fit, None, None, True)
-    return _fit_depth_jit(model, scans, st, pose, config, bool(throw))
+    model, st, _, pose, _ = _prepare(model, scans, template, config.fit, None, None, True)
+    sol = _fit_depth_jit(model, scans, st, pose, config)
+    return _check(sol, bool(throw), "depth fit")

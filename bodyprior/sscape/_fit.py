@@ -19,7 +19,7 @@ normals are within `max_angle_deg` (60 degrees); unlike humanshape, the search r
 compatible* point over the whole cloud (a masked argmin, not "the nearest point, dropped if its
 normal disagrees"), so a vertex next to a thin structure seen from the other side still finds the
 right surface. Pairs farther than `max_dist` (humanshape has no gate at this stage; NRD uses 50 mm)
-and hand vertices (`tmpl.hand_mask`, "do not register open to closed hands") are invalid.
+and hand vertices (`template.hand_mask`, "do not register open to closed hands") are invalid.
 
 Objective (units chosen so that the numbers read as millimetres): with `d_i` the distance of vertex
 `i` to its compatible scan point and `E` the non-hand vertices,
@@ -66,6 +66,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
+from .._solution import RESULTS, Solution, _check
 from .._validate import check_array, is_tracer
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
@@ -74,7 +75,6 @@ from ._model import SScapeModel, evaluate, shape_vertices
 
 __all__ = [
     "FitConfig",
-    "FitResult",
     "SScapeFit",
     "compatible_correspondences",
     "fit_similarity",
@@ -86,17 +86,6 @@ __all__ = [
 # data term, so these rotations are unobservable apart from hand landmarks).
 _HAND_WORDS = ("Hand", "Thumb", "Finger")
 _MM = 1000.0  # residuals are scaled to millimetres so that solver tolerances read in mm
-
-
-class FitResult(eqx.Enumeration):
-    """Outcome of an S-SCAPE fit (an `equinox.Enumeration`; compare with `==`)."""
-
-    successful = ""
-    max_passes_reached = (
-        "The data term was still changing after `max_passes` passes (the fit is usable)."
-    )
-    solver_failed = "A Levenberg-Marquardt solve failed (diverged or hit a singular system)."
-    nonfinite = "The fit produced NaN or infinite values."
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,7 +120,7 @@ class FitConfig:
     - `landmark_steps`, `pose_steps`, `shape_steps`: Levenberg-Marquardt step limits per solve.
     - `solver_rtol`, `solver_atol`: Levenberg-Marquardt tolerances (parameters in m/rad, objective
       in mm^2).
-    - `exclude_hands`: exclude `tmpl.hand_mask` vertices from the data term (True, humanshape).
+    - `exclude_hands`: exclude `template.hand_mask` vertices from the data term (True, humanshape).
     """
 
     max_passes: int = 10
@@ -190,9 +179,10 @@ class FitConfig:
 
 
 class SScapeFit(eqx.Module):
-    """Result of [`bodyprior.sscape.fit_sscape`][] (batched: every leaf has a leading scan axis).
+    """The fitted body of [`bodyprior.sscape.fit_sscape`][]: the `value` of its
+    [`bodyprior.Solution`][] (batched: every leaf has a leading scan axis).
 
-    **Fields** (V vertices, J joints, K components, N = `max_passes + 1`):
+    **Fields** (V vertices, J joints, K components):
 
     - `coeffs`: shape coefficients, shape `(K,)`, standard deviations, within `±coeff_bound`.
     - `pose`: local joint rotations, axis-angle, shape `(J, 3)`, radians.
@@ -200,11 +190,6 @@ class SScapeFit(eqx.Module):
     - `vertices`: fitted posed mesh in the scan frame, shape `(V, 3)`, metres;
       `similarity.apply(evaluate(model, coeffs, pose)[0])`.
     - `rest_vertices`: shaped, unposed mesh in the model frame, shape `(V, 3)`, metres.
-    - `result`: a [`bodyprior.sscape.FitResult`][].
-    - `stats`: dict of arrays: `data_term` `(N,)` (mm^2, after the landmark stage and after each
-      pass; NaN after the last pass), `mean_distance_mm` `(N,)` (mean over valid vertices),
-      `passes` (int), `converged` (bool), `final_mean_distance_mm`, `valid_fraction` (of the
-      non-hand vertices), `landmark_rms_mm` (present landmarks), `solver_steps` (total LM steps).
     """
 
     coeffs: Float[Array, " K"]
@@ -212,8 +197,6 @@ class SScapeFit(eqx.Module):
     similarity: Similarity
     vertices: Float[Array, "V 3"]
     rest_vertices: Float[Array, "V 3"]
-    result: FitResult
-    stats: dict
 
 
 # --------------------------------------------------------------------------------------------------
@@ -321,7 +304,7 @@ def compatible_correspondences(
     - `scan`: a [`bodyprior.registration.Scan`][] (one scan).
     - `max_dist`: distance gate, metres (default 0.05).
     - `max_angle_deg`: normal compatibility angle, degrees (default 60).
-    - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `tmpl.hand_mask`).
+    - `exclude_mask`: optional bool `(V,)`, vertices never valid (e.g. `template.hand_mask`).
 
     **Returns:** `(idx, weight)`: `(V,)` int32 index into `scan.points` (0 for invalid pairs) and
     `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
@@ -418,7 +401,8 @@ def _lm_solve(rtol: float, atol: float):
 
     Normal equations + Cholesky: the unknowns are few (~100) and the residuals many (~20k); XLA's
     CPU QR of a 20k x 100 Jacobian costs ~60x more than forming and factoring `JᵀJ` (float64; the
-    damping keeps it SPD). Running out of steps is not a failure (the passes iterate anyway)."""
+    damping keeps it SPD). Running out of steps is not a failure (an iteration budget: the passes
+    iterate anyway; `bodyprior._solution`)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
 
     def solve(fn, y0, args, steps):
@@ -429,6 +413,80 @@ def _lm_solve(rtol: float, atol: float):
         return sol.value, ~ok, sol.stats["num_steps"]
 
     return solve
+
+
+def _pass_loop(
+    step: Callable,
+    measure: Callable,
+    params0,
+    corr0,
+    term0: Float[Array, ""],
+    mean0: Float[Array, ""],
+    bad0: Bool[Array, ""],
+    steps0: Int[Array, ""],
+    *,
+    max_passes: int,
+    rtol: float,
+    atol_mm: float,
+    undo_worse: bool,
+    dtype,
+):
+    """The pass loop shared by the S-SCAPE fit and the depth fit (a `lax.while_loop`).
+
+    Each pass runs `step(params, corr) -> (params, failed, n_steps)` (the pass's Levenberg-Marquardt
+    solves for fixed correspondences) and then `measure(params) -> (corr, data_term, mean_mm)`
+    (new correspondences and the data term they give). The loop stops when the data term changes
+    by at most `rtol` (relative) or the mean distance by at most `atol_mm`, after `max_passes`
+    passes, or when a solve failed or the data term is not finite. With `undo_worse`, a pass that
+    raised the data term is undone (parameters and correspondences) and ends the loop, so the
+    recorded data term never increases.
+
+    **Returns:** `(passes, params, corr, data_term (N,), mean_distance_mm (N,), converged,
+    failed, n_steps)` with `N = max_passes + 1` (entry 0: `term0`; NaN after the last pass).
+    """
+    nan = jnp.full((max_passes + 1,), jnp.nan, dtype)
+
+    def cond(state):
+        i, *_, done, bad, _ = state
+        return (i < max_passes) & ~done & ~bad
+
+    def body(state):
+        i, params, corr, hist, dhist, done, bad, steps = state
+        new, bad_step, n = step(params, corr)
+        new_corr, term, mean_d = measure(new)
+        prev, prev_d = hist[i], dhist[i]
+        if undo_worse:
+            # A pass that raised the data term (re-gated correspondences, the point-to-plane
+            # blend) is undone and ends the loop: the recorded data term never increases.
+            worse = term > prev
+            new, new_corr = jax.tree_util.tree_map(
+                lambda a, b_: jnp.where(worse, a, b_), (params, corr), (new, new_corr)
+            )
+            term, mean_d = jnp.where(worse, prev, term), jnp.where(worse, prev_d, mean_d)
+            done = worse
+        else:
+            done = False
+        done = (
+            done
+            | (jnp.abs(prev - term) <= rtol * prev)
+            | (jnp.abs(prev_d - mean_d) <= atol_mm)
+        )
+        bad = bad | bad_step | ~jnp.isfinite(term)
+        hist = hist.at[i + 1].set(term)
+        dhist = dhist.at[i + 1].set(mean_d)
+        return i + 1, new, new_corr, hist, dhist, done, bad, steps + n
+
+    state = (
+        jnp.asarray(0),
+        params0,
+        corr0,
+        nan.at[0].set(term0),
+        nan.at[0].set(mean0),
+        jnp.asarray(False),
+        bad0 | ~jnp.isfinite(term0),
+        jnp.asarray(steps0),
+    )
+    return jax.lax.while_loop(cond, body, state)
 
 
 def _unbounded(c, b):
@@ -444,7 +502,7 @@ def _fit_one(
     init_sim: Similarity | None,
     cfg: FitConfig,
     shape_residual: Callable | None,
-) -> SScapeFit:
+) -> Solution:
     dtype = model.mean.dtype
     faces = model.faces
     free = np.asarray(st.free, np.int32)
@@ -573,22 +631,14 @@ def _fit_one(
     )
     corr1, term1, mean1 = correspond(mesh(_bounded(u0, b), pose1, t1, ls1))
 
-    n_hist = cfg.max_passes + 1
-    nan = jnp.full((n_hist,), jnp.nan, dtype)
     w_lm = cfg.landmark_weight if cfg.landmark_weight > 0 else None
 
-    def cond(state):
-        i, *_, done, bad, _ = state
-        return (i < cfg.max_passes) & ~done & ~bad
-
-    def body(state):
-        i, pose, t, ls, u, corr, hist, dhist, done, bad, steps = state
-        old = (u, pose, t, ls, corr)
+    def step(params, corr):
+        u, pose, t, ls = params
         if cfg.schedule == "joint":
-            u, pose, t, ls, bad1, n1 = stage(
+            u, pose, t, ls, bad, n = stage(
                 True, True, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
             )
-            bad2, n2 = False, 0
         else:
             u, pose, t, ls, bad1, n1 = stage(
                 True, False, w_lm, True, cfg.pose_steps, u, pose, t, ls, corr
@@ -597,41 +647,18 @@ def _fit_one(
             u, pose, t, ls, bad2, n2 = stage(
                 False, True, w_lm, True, cfg.shape_steps, u, pose, t, ls, corr
             )
-        corr, term, mean_d = correspond(mesh(_bounded(u, b), pose, t, ls))
-        prev, prev_d = hist[i], dhist[i]
-        # A pass that raised the data term (re-gated correspondences, the point-to-plane blend) is
-        # undone and ends the loop: the recorded data term never increases.
-        worse = term > prev
-        u, pose, t, ls, corr = jax.tree_util.tree_map(
-            lambda a, b_: jnp.where(worse, a, b_), old, (u, pose, t, ls, corr)
-        )
-        term, mean_d = jnp.where(worse, prev, term), jnp.where(worse, prev_d, mean_d)
-        done = (
-            worse
-            | (jnp.abs(prev - term) <= cfg.rtol * prev)
-            | (jnp.abs(prev_d - mean_d) <= cfg.atol_mm)
-        )
-        bad = bad | bad1 | bad2 | ~jnp.isfinite(term)
-        hist = hist.at[i + 1].set(term)
-        dhist = dhist.at[i + 1].set(mean_d)
-        return i + 1, pose, t, ls, u, corr, hist, dhist, done, bad, steps + n1 + n2
+            bad, n = bad1 | bad2, n1 + n2
+        return (u, pose, t, ls), bad, n
 
-    state = (
-        jnp.asarray(0),
-        pose1,
-        t1,
-        ls1,
-        u0,
-        corr1,
-        nan.at[0].set(term1),
-        nan.at[0].set(mean1),
-        jnp.asarray(False),
-        bad0 | ~jnp.isfinite(term1),
-        jnp.asarray(steps0),
-    )
-    passes, pose, t, ls, u, corr, hist, dhist, done, bad, steps = jax.lax.while_loop(
-        cond, body, state
-    )
+    def measure(params):
+        u, pose, t, ls = params
+        return correspond(mesh(_bounded(u, b), pose, t, ls))
+
+    passes, (u, pose, t, ls), corr, hist, dhist, done, bad, steps = _pass_loop(
+        step, measure, (u0, pose1, t1, ls1), corr1, term1, mean1, bad0, steps0,
+        max_passes=cfg.max_passes, rtol=cfg.rtol, atol_mm=cfg.atol_mm, undo_worse=True,
+        dtype=dtype,
+    )  # fmt: skip
 
     coeffs = _bounded(u, b)
     sim = Similarity(R0, t, ls)
@@ -641,9 +668,8 @@ def _fit_one(
     finite = (
         jnp.all(jnp.isfinite(verts)) & jnp.all(jnp.isfinite(coeffs)) & jnp.all(jnp.isfinite(pose))
     )
-    result = FitResult.where(done, FitResult.successful, FitResult.max_passes_reached)
-    result = FitResult.where(bad, FitResult.solver_failed, result)
-    result = FitResult.where(finite, result, FitResult.nonfinite)
+    result = RESULTS.where(bad, RESULTS.solver_failed, RESULTS.successful)
+    result = RESULTS.where(finite, result, RESULTS.nonfinite)
     _, w = corr
     stats = {
         "data_term": hist,
@@ -653,21 +679,14 @@ def _fit_one(
         "final_mean_distance_mm": dhist[passes],
         "valid_fraction": jnp.sum(w) / n_elig,
         "landmark_rms_mm": jnp.sqrt(jnp.sum(lm_w * lm_err**2) / n_lm),
-        "solver_steps": steps,
+        "num_steps": steps,
     }
-    return SScapeFit(coeffs, pose, sim, verts, rest, result, stats)
-
-
-def _failed(result) -> Bool[Array, ""]:
-    return (result == FitResult.solver_failed) | (result == FitResult.nonfinite)
+    return Solution(SScapeFit(coeffs, pose, sim, verts, rest), result, stats)
 
 
 @eqx.filter_jit
-def _fit_single(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual, throw):
-    fit = _fit_one(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual)
-    if throw:
-        fit = fit.result.error_if(fit, _failed(fit.result))
-    return fit
+def _fit_single(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual):
+    return _fit_one(model, scan, st, init_coeffs, init_pose, init_sim, cfg, shape_residual)
 
 
 def _fit_kernel(replicated, item):
@@ -694,11 +713,13 @@ def _check_scan_fields(scan: Scan, batched: bool):
     return dims
 
 
-def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
+def _prepare(model, scan, template, config, shape_residual, init, batched: bool):
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
-    if not isinstance(tmpl, RegistrationTemplate):
-        raise ValueError(f"`tmpl` must be a RegistrationTemplate, got {type(tmpl).__name__}.")
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
+        )
     if not isinstance(config, FitConfig):
         raise ValueError(f"`config` must be a FitConfig, got {type(config).__name__}.")
     if not isinstance(scan, Scan):
@@ -708,15 +729,15 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
             f"`shape_residual` must be a callable (rest_vertices (V, 3)) -> (R,) or None, got "
             f"{type(shape_residual).__name__}."
         )
-    if model.n_vertices != tmpl.n_vertices:
+    if model.n_vertices != template.n_vertices:
         raise ValueError(
-            f"`model` has {model.n_vertices} vertices but `tmpl` has {tmpl.n_vertices}: the model "
-            "must be learned on the template's topology (`tmpl.restrict(...)`)."
+            f"`model` has {model.n_vertices} vertices but `template` has {template.n_vertices}: the "
+            "model must be learned on the template's topology (`template.restrict(...)`)."
         )
-    if tuple(model.faces.shape) != tuple(tmpl.faces.shape):
+    if tuple(model.faces.shape) != tuple(template.faces.shape):
         raise ValueError(
-            f"`model.faces` has shape {tuple(model.faces.shape)} but `tmpl.faces` has "
-            f"{tuple(tmpl.faces.shape)}: model and template must share the topology."
+            f"`model.faces` has shape {tuple(model.faces.shape)} but `template.faces` has "
+            f"{tuple(template.faces.shape)}: model and template must share the topology."
         )
     if not jax.config.jax_enable_x64:
         raise ValueError(
@@ -727,8 +748,8 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
 
     # Landmark names -> template vertices (host side; names are static).
     names = tuple(scan.landmark_names)
-    tpos = {n: i for i, n in enumerate(tmpl.landmark_names)}
-    lm_index = np.asarray(tmpl.landmark_index)
+    tpos = {n: i for i, n in enumerate(template.landmark_names)}
+    lm_index = np.asarray(template.landmark_index)
     known = np.array([n in tpos for n in names], bool)
     vertex = np.array([lm_index[tpos[n]] if n in tpos else 0 for n in names], np.int32)
     if not is_tracer(scan.landmark_mask):
@@ -757,9 +778,9 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
     if not free:
         raise ValueError("`config.frozen_joints` freezes every joint; at least one must be free.")
     exclude = (
-        np.asarray(tmpl.hand_mask, bool)
+        np.asarray(template.hand_mask, bool)
         if config.exclude_hands
-        else np.zeros(tmpl.n_vertices, bool)
+        else np.zeros(template.n_vertices, bool)
     )
     st = _Static(jnp.asarray(vertex), jnp.asarray(known), jnp.asarray(exclude), free)
     model = _as_float64(model)
@@ -773,8 +794,12 @@ def _prepare(model, scan, tmpl, config, shape_residual, init, batched: bool):
         pose = jnp.zeros((*lead, J, 3), dtype)
         sim = None
     else:
+        if isinstance(init, Solution):
+            init = init.value
         if not isinstance(init, SScapeFit):
-            raise ValueError(f"`init` must be an SScapeFit or None, got {type(init).__name__}.")
+            raise ValueError(
+                f"`init` must be an SScapeFit (or its Solution) or None, got {type(init).__name__}."
+            )
         pose = jnp.asarray(check_array(init.pose, "init.pose", (*lead, J, 3)), dtype)
         c = check_array(init.coeffs, "init.coeffs", (*lead, None))
         c = jnp.asarray(c, dtype)[..., :K]
@@ -805,13 +830,13 @@ def _as_float64(tree):
 def fit_sscape(
     model: SScapeModel,
     scan: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
-    init: SScapeFit | None = None,
+    init: SScapeFit | Solution | None = None,
     throw: bool = True,
-) -> SScapeFit:
+) -> Solution:
     """Fits an S-SCAPE space to one scan: similarity, pose from landmarks, then alternating pose
     and shape fits to compatible nearest neighbours (see the module docstring; sscape.md §2).
 
@@ -821,43 +846,54 @@ def fit_sscape(
     **Arguments:**
 
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on the template's topology (e.g.
-      `learn(tmpl.restrict(pop.vertices), tmpl.faces, n_components=K, **tmpl.rig_kwargs())`).
+      `learn(template.restrict(pop.vertices), template.faces, n_components=K,
+      **template.rig_kwargs())`).
     - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks must be
-      named in `tmpl.landmark_names`.
-    - `tmpl`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand mask).
+      named in `template.landmark_names`.
+    - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand
+      mask).
     - `config`: a [`bodyprior.sscape.FitConfig`][].
     - `shape_residual`: optional `rest_vertices (V, 3) -> (R,)` residual vector added (unscaled)
       to the shape solves, whose data part is in millimetres (objective in mm^2). Must be
       jittable; an `eqx.Module` or a plain function.
-    - `init`: optional previous [`bodyprior.sscape.SScapeFit`][] to start from (its similarity,
-      pose and coefficients, truncated or zero-padded to this model's K); the landmark pose stage
-      still runs, starting from it.
-    - `throw`: raise if the fit failed (`FitResult.solver_failed` or `nonfinite`); otherwise
-      inspect `fit.result`. `max_passes_reached` is not an error.
+    - `init`: optional previous [`bodyprior.sscape.SScapeFit`][] (or its `Solution`) to start
+      from (its similarity, pose and coefficients, truncated or zero-padded to this model's K);
+      the landmark pose stage still runs, starting from it.
+    - `throw`: raise if the fit failed (`result` not `RESULTS.successful`: `solver_failed` or
+      `nonfinite`); otherwise inspect `sol.result`. Using all `max_passes` is not a failure
+      (`stats["converged"]` is False then; the rule is [`bodyprior.Solution`][]'s).
 
-    **Returns:** an [`bodyprior.sscape.SScapeFit`][].
+    **Returns:** a [`bodyprior.Solution`][]: `value` an [`bodyprior.sscape.SScapeFit`][];
+    `result` a [`bodyprior.RESULTS`][]; `stats` a dict of arrays (N = `max_passes + 1`):
+    `data_term` `(N,)` (mm^2, after the landmark stage and after each pass; NaN after the last
+    pass), `mean_distance_mm` `(N,)` (mean over valid vertices), `passes` (int), `converged`
+    (bool: the pass loop met its stopping test), `final_mean_distance_mm`, `valid_fraction` (of
+    the non-hand vertices), `landmark_rms_mm` (present landmarks), `num_steps` (total LM steps).
 
     **Raises:** `ValueError` (before tracing) for a wrong model/template/scan/config, a model whose
     vertex count or faces differ from the template's, fewer than 4 usable landmarks, or NaN points.
     """
-    model, st, coeffs, pose, sim = _prepare(model, scan, tmpl, config, shape_residual, init, False)
-    return _fit_single(model, scan, st, coeffs, pose, sim, config, shape_residual, bool(throw))
+    model, st, coeffs, pose, sim = _prepare(
+        model, scan, template, config, shape_residual, init, False
+    )
+    sol = _fit_single(model, scan, st, coeffs, pose, sim, config, shape_residual)
+    return _check(sol, bool(throw), "S-SCAPE fit")
 
 
 def fit_sscape_batch(
     model: SScapeModel,
     scans: Scan,
-    tmpl: RegistrationTemplate,
+    template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
     shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
-    init: SScapeFit | None = None,
+    init: SScapeFit | Solution | None = None,
     devices=None,
     chunk_size: int | None = None,
     progress: bool = True,
     strategy: str | None = None,
     throw: bool = True,
-) -> SScapeFit:
+) -> Solution:
     """Fits many scans: `vmap` of the single-scan fit, spread over devices, in chunks.
 
     The scans (padded to a common point count, `point_mask` False on padding; see
@@ -871,21 +907,24 @@ def fit_sscape_batch(
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus
 
     - `scans`: a batched [`bodyprior.registration.Scan`][] (leading axis B).
-    - `init`: optional batched `SScapeFit` (leading axis B).
+    - `init`: optional batched `SScapeFit` or its `Solution` (leading axis B).
     - `devices`: devices to shard over (default: all of `jax.devices()`).
     - `chunk_size`: scans per jitted call, rounded up to a multiple of the device count (default:
       4 per device, at most B rounded up).
     - `progress`: show a progress bar.
     - `strategy`: `"spmd"`, `"per_device"` or `None` (by platform); see `batch_map`.
-    - `throw`: raise a `RuntimeError` naming the failed scans (after all chunks ran).
+    - `throw`: raise naming the failed scans (after all chunks ran); with `False` inspect the
+      per-scan `sol.result` (shape `(B,)`).
 
-    **Returns:** a batched [`bodyprior.sscape.SScapeFit`][] (leading axis B, NumPy-backed leaves on
-    the host).
+    **Returns:** a batched [`bodyprior.Solution`][] (every leaf, `result` included, with a leading
+    axis B; NumPy-backed leaves on the host).
     """
     from ..registration._shard import batch_map
 
-    model, st, coeffs, pose, sim = _prepare(model, scans, tmpl, config, shape_residual, init, True)
-    fits = batch_map(
+    model, st, coeffs, pose, sim = _prepare(
+        model, scans, template, config, shape_residual, init, True
+    )
+    sol = batch_map(
         _fit_kernel,
         (model, st, config, shape_residual),
         (scans, coeffs, pose, sim),
@@ -895,13 +934,4 @@ def fit_sscape_batch(
         desc="fitting S-SCAPE",
         strategy=strategy,
     )
-    if throw:
-        failed = np.flatnonzero(np.asarray(_failed(fits.result)))
-        if failed.size:
-            first = int(failed[0])
-            msg = FitResult[jax.tree_util.tree_map(lambda x: x[first], fits.result)]
-            raise RuntimeError(
-                f"S-SCAPE fit failed for {failed.size} scan(s) (indices {failed[:20].tolist()}): "
-                f"{msg} Pass throw=False to inspect `fit.result`."
-            )
-    return fits
+    return _check(sol, bool(throw), "S-SCAPE fit")
