@@ -436,7 +436,18 @@ def test_render_poses(tmp_path, body):
 # --------------------------------------------------------------------------------------------------
 # public retargeting: Retargeter, retarget, poses_to_bvh, 2008 CMU names
 
-DATA = Path(__file__).resolve().parent / "data"
+_MB_3FRAMES = "cmu_mb_motionbuilder-friendly_una-dinosauria-cmu-mocap/02_06_first3frames.bvh"
+
+
+def _cmu_2008_file(tmp_path) -> Path:
+    """CMU 02_06 (the shared 3-frame excerpt of the MotionBuilder-friendly conversion) with its
+    finger joints renamed to the 2008 release's names (`LeftHandIndex1` -> `LFingers`,
+    `RightHandIndex1` -> `RFingers`), as in CMU 01_01 of that release; made from the shared data
+    at test time, so no mocap file is committed."""
+    src = bp.read_bvh(MOCAP / _MB_3FRAMES)
+    path = tmp_path / "cmu_mb2008_02_06_3frames.bvh"
+    bp.write_bvh(path, M._rename(src, {v: k for k, v in M._MB2008_TO_MB.items()}))
+    return path
 
 
 def _angle(a, b):
@@ -446,8 +457,10 @@ def _angle(a, b):
     return np.arccos(np.clip(np.asarray(cos), -1, 1))
 
 
+@needs_data
 def test_cmu_2008_names_retarget_like_2010(tmp_path, body):
-    b08 = bp.read_bvh(DATA / "cmu_mb2008_02_06_3frames.bvh")
+    path08 = _cmu_2008_file(tmp_path)
+    b08 = bp.read_bvh(path08)
     assert M.skeleton_kind(b08) == "cmu_mb2008"
     b10 = M._rename(b08, M._MB2008_TO_MB)
     assert M.skeleton_kind(b10) == "cmu_mb"
@@ -456,7 +469,7 @@ def test_cmu_2008_names_retarget_like_2010(tmp_path, body):
     np.testing.assert_array_equal(p08, p10)
     assert p08.shape == (2, body.n_joints, 3) and np.all(np.isfinite(p08))
     assert abs(t08[0, 2] + body_root_height(body) - 1.0) < 0.1  # CMU hips about 1 m high
-    ps = load_mocap(DATA / "cmu_mb2008_02_06_3frames.bvh", progress=False, body=body,
+    ps = load_mocap(path08, progress=False, body=body,
                     min_duration=0.0)  # fmt: skip
     assert ps.n_poses == 1 and np.all(np.abs(np.asarray(ps.euler)) < np.pi)
     # a missing joint is named as in the file (RFingers, not RightHandIndex1)
