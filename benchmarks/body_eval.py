@@ -1,10 +1,15 @@
 """Benchmark: shape + pose + LBS evaluation of the full-resolution default body, bodyprior vs anny.
 
-Both sides do the same work in the same run: phenotypes -> rest mesh (13,380 body vertices) -> forward
-kinematics on the 31-bone `cmu_mb` rig -> linear blend skinning, float32, on all CPU threads (XLA's pool and
-`torch.set_num_threads(os.cpu_count())`). anny is built with `rig="cmu_mb"`, topology `anny-noeyes-notongue`
-(its body-only mesh), dense `lbs` skinning, `local-ref` pose parameterisation, default (compact) phenotype
-blendshapes, under `torch.inference_mode()`. Times are medians over repeats; bodyprior's compile time is
+Both sides do the same work in the same run: phenotypes -> rest mesh (13,380 body vertices) ->
+forward
+kinematics on the 31-bone `cmu_mb` rig -> linear blend skinning, float32, on all CPU threads (XLA's
+pool and
+`torch.set_num_threads(os.cpu_count())`). anny is built with `rig="cmu_mb"`, topology
+`anny-noeyes-notongue`
+(its body-only mesh), dense `lbs` skinning, `local-ref` pose parameterisation, default (compact)
+phenotype
+blendshapes, under `torch.inference_mode()`. Times are medians over repeats; bodyprior's compile
+time is
 reported separately (`compile_s`).
 
 `--quick`: the same comparison with 5 repeats and batches 1 and 16 (seconds); the JSON says
@@ -54,7 +59,8 @@ def bench_bodyprior(batches, repeats):
     body = bp.load_default_body("cmu_mb")
     out = {}
 
-    # The body is passed as an argument (a PyTree of arrays), as user code would, not baked in as constants.
+    # The body is passed as an argument (a PyTree of arrays), as user code would, not baked in as
+    # constants.
     @jax.jit
     def run_b(body, phen, pose):
         return jax.vmap(lambda p, q: bp.evaluate(body, p, q)[0])(phen, pose)
@@ -102,11 +108,18 @@ def bench_anny(batches, repeats):
         pose = torch.eye(4).repeat(B, J, 1, 1)
         pose[..., :3, :3] = roma.rotvec_to_rotmat(torch.as_tensor(aa))
         with torch.inference_mode():
-            rest_root = model(pose_parameters=None, phenotype_kwargs=phen)["rest_bone_poses"][:, 0, :3, 3]
+            rest = model(pose_parameters=None, phenotype_kwargs=phen)["rest_bone_poses"]
+            rest_root = rest[:, 0, :3, 3]
             pose[:, 0, :3, 3] = rest_root  # anny puts the root head at the delta translation
             verts = model(pose_parameters=pose, phenotype_kwargs=phen)["vertices"]
-            ms = _median_ms(lambda: model(pose_parameters=pose, phenotype_kwargs=phen)["vertices"], repeats, lambda x: x)
-        out[B] = dict(ms=ms, vertices=verts.numpy(), map=model.base_mesh_vertex_indices.numpy(), bones=J)
+            ms = _median_ms(
+                lambda: model(pose_parameters=pose, phenotype_kwargs=phen)["vertices"],
+                repeats,
+                lambda x: x,
+            )
+        out[B] = dict(
+            ms=ms, vertices=verts.numpy(), map=model.base_mesh_vertex_indices.numpy(), bones=J
+        )
     return out
 
 
@@ -122,8 +135,13 @@ def main(argv=None):
     b1, bN = args.batches[0], args.batches[-1]
     res = dict(
         mode="quick" if args.quick else "full",
-        machine=dict(cpus=os.cpu_count(), platform=platform.platform(), python=sys.version.split()[0],
-                     jax=jax.__version__, device=str(jax.devices()[0])),
+        machine=dict(
+            cpus=os.cpu_count(),
+            platform=platform.platform(),
+            python=sys.version.split()[0],
+            jax=jax.__version__,
+            device=str(jax.devices()[0]),
+        ),
         repeats=args.repeats,
         vertices=13380,
         rig="cmu_mb (31 bones)",

@@ -6,7 +6,8 @@ schedule (one round α = 0, β = 1e6, γ = 1e-3, then α = 1 and β, γ x 0.25 p
 β <= 1e3), correspondences recomputed every round with the same rule and the same code
 (`bodyprior.internal.nrd_correspond`, jitted), the same energy (`internal.nrd_system` assembles the
 round's normal equations; scipy gets them as a sparse matrix: f = Σ_c x_cᵀ H x_c − 2 x_cᵀ R_c,
-∇f = 2 (H X − R)), float64, and the same early-stopping rule. bodyprior: `bodyprior.registration.nrd`
+∇f = 2 (H X − R)), float64, and the same early-stopping rule. bodyprior:
+`bodyprior.registration.nrd`
 (one jitted call for all rounds; PCG with a two-level preconditioner). L-BFGS-B (the paper's
 optimiser): `scipy.optimize.minimize(method="L-BFGS-B")` with humanshape's settings (m = 5,
 factr = 1e7, pgtol = 1e-5), warm-started across rounds, (a) 100 iterations per round as

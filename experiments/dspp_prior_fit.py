@@ -19,7 +19,8 @@ validation / test bodies (the sampler draws bodies i.i.d., so the split is rando
 and the DSPP prior are trained on the training bodies only; every weight is chosen on the
 validation bodies (grid search, lowest mean vertex error); the test bodies are used once, at the
 end. A landmark whose full-mesh vertex was removed by the decimation is mapped to the nearest kept
-vertex on the rest template (the rule of `bodyprior.registration.registration_template`, whose landmark
+vertex on the rest template (the rule of `bodyprior.registration.registration_template`, whose
+landmark
 indices these equal).
 
 Outputs in `--out`: `metrics.json` (errors in mm per method, the validation grids, the chosen

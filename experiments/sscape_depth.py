@@ -21,12 +21,14 @@ Protocol (after Helten et al. 2013, as the paper follows it), on simulated data:
    sampler, `scheme="anny"`).
 4. **Fitting.** `bodyprior.sscape.fit_depth`: independent fits per image, then one shared shape and
    a pose per image.
-5. **Error.** Per-vertex Euclidean distance (mm, `bodyprior.registration.gt_error`) between the fitted
+5. **Error.** Per-vertex Euclidean distance (mm, `bodyprior.registration.gt_error`) between the
+  fitted
    *rest shape* (the shared shape in the model's zero pose, times the fitted scale, rigidly aligned
    to the truth) and the subject's true rest shape restricted to the template; this is the shape
    accuracy Helten et al. measure against the laser-scan fit. Also reported: the error of the fitted
    *posed* meshes against the true posed bodies in each image's frame (hands excluded: their pose is
-   not fitted). Cumulative curves (`bodyprior.registration.cumulative_curve`, 0-50 mm) are the paper's
+   not fitted). Cumulative curves (`bodyprior.registration.cumulative_curve`, 0-50 mm) are the
+   paper's
    Fig. 5; per-vertex error maps of one male and one female subject are Fig. 6.
 
 Run: `python experiments/sscape_depth.py --quick --out out/depth` (minutes) or `--full`.

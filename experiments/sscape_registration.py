@@ -8,7 +8,8 @@ population scanned by the virtual laser scanner instead of CAESAR:
    learn the *initial* S-SCAPE space (the stand-in for the space the paper starts from, learned on a
    smaller, different data set), the next `n_train` are the training scans, the last `n_test` the
    test scans. Scans: `simulate_scans(fold_in(key, 1), ...)` with the default
-   [`bodyprior.registration.ScannerConfig`][] (19,347 points, 1 mm noise, 2 % outliers, 7.5 mm landmark
+   [`bodyprior.registration.ScannerConfig`][] (19,347 points, 1 mm noise, 2 % outliers, 7.5 mm
+   landmark
    noise, 5 % landmarks missing).
 2. **Registration** of every scan (train and test) by the paper's four variants (Fig. 1): S-SCAPE
    fit alone (`fit_sscape_batch` with the initial space), NRD from the static template aligned by
@@ -382,7 +383,8 @@ def main(argv=None) -> dict:
 
     # Figures: cumulative curves (Fig. 1a) by both definitions and both ranges.
     for kind, label in (("fit", "paper's fitting error"), ("gt", "ground-truth error")):
-        for thr, tag in ((registration.THRESHOLDS_20MM, "20mm"), (registration.THRESHOLDS_50MM, "50mm")):
+        ranges = ((registration.THRESHOLDS_20MM, "20mm"), (registration.THRESHOLDS_50MM, "50mm"))
+        for thr, tag in ranges:
             curves = {
                 m: registration.cumulative_curve(
                     errs[m][kind], thr, valid=errs[m]["valid"] if kind == "fit" else None

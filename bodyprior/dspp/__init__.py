@@ -1,4 +1,5 @@
-"""DSPP: deep shape and pose priors (Hu, Shum, Mucherino 2019) — auto-encoders with GANs in their latent
+"""DSPP: deep shape and pose priors (Hu, Shum, Mucherino 2019) — auto-encoders with GANs in their
+latent
 spaces, on the default body's topology and `cmu_mb` rig."""
 
 from ._checkpoint import (
