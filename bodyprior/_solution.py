@@ -34,6 +34,7 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax
 import numpy as np
 import optimistix as optx
 
@@ -81,18 +82,21 @@ def _check(sol: Solution, throw: bool, what: str) -> Solution:
     if sol.result.is_traced():
         value = sol.result.error_if(sol.value, sol.failed)
         return Solution(value, sol.result, sol.stats, sol.aux)
-    codes = np.asarray(sol.result._value)
-    failed = codes != RESULTS.successful._value
+    failed = np.asarray(sol.failed)
     if not failed.any():
         return sol
-    flat, bad = codes.reshape(-1), np.flatnonzero(failed.reshape(-1))
-    msgs = {RESULTS._index_to_message[int(flat[i])] for i in bad}
-    if codes.ndim == 0:
+    bad = np.flatnonzero(failed.reshape(-1))
+    # Public equinox API only: index the item's array leaf, then `RESULTS[item]` is its message.
+    def item(i: int):
+        return jax.tree.map(lambda v: np.asarray(np.asarray(v).reshape(-1)[i]), sol.result)
+
+    msgs = {RESULTS[item(int(i))] for i in bad}
+    if failed.ndim == 0:
         where = ""
     else:
         shown = bad[:20].tolist()
         more = f" and {bad.size - 20} more" if bad.size > 20 else ""
-        where = f" for {bad.size} of {flat.size} item(s) (indices {shown}{more})"
+        where = f" for {bad.size} of {failed.size} item(s) (indices {shown}{more})"
     raise RuntimeError(
         f"{what} failed{where}: {' / '.join(sorted(msgs))} Pass `throw=False` to inspect "
         "`solution.result`."

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 
 import jax
 
+from .._solution import _check as check_solution
 from ..dspp._train import _aegan_cycle as dspp_aegan_cycle
 from ..dspp._train import _init_state as dspp_init_state
 from ..registration._nrd import _apply as nrd_apply
@@ -35,6 +36,7 @@ from ..sscape._fit import _correspondences as sscape_fit_correspondences
 
 __all__ = [
     "NRDRound",
+    "check_solution",
     "dspp_aegan_cycle",
     "dspp_init_state",
     "nrd_apply",
