@@ -172,6 +172,26 @@ def _fitting_error_batch_jit(
 # Public API
 
 
+def _fitting_error_args(vertices, scan, faces, max_dist, max_angle_deg, search, batched: bool):
+    """Host checks shared by `fitting_error(_batch)`; the jitted kernels' positional arguments."""
+    dims: dict[str, int] = {}
+    lead = ("N",) if batched else ()
+    check_array(vertices, "vertices", lead + ("V", 3), dims=dims)
+    name = "scans" if batched else "scan"
+    pts, nrm, mask = _scan_arrays(scan, name, batched=batched)
+    if batched and pts.shape[0] != dims["N"]:
+        raise ValueError(f"`scans` must hold {dims['N']} scans (one per mesh), got {pts.shape[0]}.")
+    _check_options(max_dist, max_angle_deg, search)
+    faces = _default_faces(dims["V"]) if faces is None else faces
+    check_array(faces, "faces", (None, 3), integer=True)
+    v = jnp.asarray(vertices)
+    cos_max = float(np.cos(np.deg2rad(max_angle_deg)))
+    return (
+        v, jnp.asarray(faces, jnp.int32), pts.astype(v.dtype), nrm.astype(v.dtype), mask,
+        float(max_dist), cos_max, search,
+    )  # fmt: skip
+
+
 def fitting_error(
     vertices: Float[Array, "V 3"],
     scan,
@@ -204,18 +224,8 @@ def fitting_error(
 
     **Returns:** a [`bodyprior.registration.FittingError`][] `(error_mm (V,), valid (V,), nearest (V,))`.
     """
-    dims: dict[str, int] = {}
-    check_array(vertices, "vertices", ("V", 3), dims=dims)
-    pts, nrm, mask = _scan_arrays(scan)
-    _check_options(max_dist, max_angle_deg, search)
-    faces = _default_faces(dims["V"]) if faces is None else faces
-    check_array(faces, "faces", (None, 3), integer=True)
-    v = jnp.asarray(vertices)
-    cos_max = float(np.cos(np.deg2rad(max_angle_deg)))
-    return _fitting_error_jit(
-        v, jnp.asarray(faces, jnp.int32), pts.astype(v.dtype), nrm.astype(v.dtype), mask,
-        float(max_dist), cos_max, search,
-    )  # fmt: skip
+    args = _fitting_error_args(vertices, scan, faces, max_dist, max_angle_deg, search, False)
+    return _fitting_error_jit(*args)
 
 
 def fitting_error_batch(
@@ -233,20 +243,8 @@ def fitting_error_batch(
     large batches on the host. **Returns:** a `FittingError` whose
     fields have a leading `N` axis.
     """
-    dims: dict[str, int] = {}
-    check_array(vertices, "vertices", ("N", "V", 3), dims=dims)
-    pts, nrm, mask = _scan_arrays(scans, "scans", batched=True)
-    if pts.shape[0] != dims["N"]:
-        raise ValueError(f"`scans` must hold {dims['N']} scans (one per mesh), got {pts.shape[0]}.")
-    _check_options(max_dist, max_angle_deg, search)
-    faces = _default_faces(dims["V"]) if faces is None else faces
-    check_array(faces, "faces", (None, 3), integer=True)
-    v = jnp.asarray(vertices)
-    cos_max = float(np.cos(np.deg2rad(max_angle_deg)))
-    return _fitting_error_batch_jit(
-        v, jnp.asarray(faces, jnp.int32), pts.astype(v.dtype), nrm.astype(v.dtype), mask,
-        float(max_dist), cos_max, search,
-    )  # fmt: skip
+    args = _fitting_error_args(vertices, scans, faces, max_dist, max_angle_deg, search, True)
+    return _fitting_error_batch_jit(*args)
 
 
 def gt_error(
