@@ -119,8 +119,8 @@ class GateResult(NamedTuple):
 def body_parts(template: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
     """Body-part label of every template vertex, `(V,)` int (`-1` = hands, not judged), and the
     part names (vertices grouped by their dominant skinning bone)."""
-    sw = np.asarray(template.skin_weight)
-    si = np.asarray(template.skin_index)
+    sw = np.asarray(template.rig.skin_weights)
+    si = np.asarray(template.rig.skin_indices)
     bone = si[np.arange(si.shape[0]), sw.argmax(1)]
     names = template.joint_names
     bone_part = np.full(len(names), -1)
@@ -293,7 +293,7 @@ class BootstrapResult(NamedTuple):
 
 def _learn_from(meshes, tmpl, n_components):
     k = int(min(n_components, meshes.shape[0] - 1))
-    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, **tmpl.rig_kwargs())
+    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
 
 
 def bootstrap(
