@@ -188,7 +188,7 @@ def _spaces(key, body, tmpl, st: Setting, progress):
         bm = np.asarray(tmpl.restrict(base.vertices), np.float64)
         k = min(kmax, st.baseline - 1)
         spaces.append(("baseline", st.baseline, learn(jnp.asarray(bm), tmpl.faces, n_components=k,
-                                                      **tmpl.rig_kwargs())))  # fmt: skip
+                                                      rig=tmpl.rig)))  # fmt: skip
     return spaces, times
 
 

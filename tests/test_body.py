@@ -285,7 +285,7 @@ def test_sscape_space_from_population():
         48, body=b, pose_jitter_deg=0.0, progress=False, key=jax.random.PRNGKey(7)
     )
     train, test = pop.vertices[:40], pop.vertices[40:]
-    space = bp.sscape.learn(train, b.faces, n_components=20, **bp.sscape_rig(b))
+    space = bp.sscape.learn(train, b.faces, n_components=20, rig=b.rig)
     assert space.n_joints == 31 and space.n_components == 20
     # Held-out bodies (rigidly aligned to the mean) are reconstructed from 20 components to a few mm.
     aligned, _ = bp.sscape.procrustes_align(jnp.concatenate([space.mean[None], test]), reference=space.mean)

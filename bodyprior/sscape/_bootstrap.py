@@ -254,7 +254,7 @@ def register_sscape_nrd(
     """
     import jax
 
-    from ..registration._nrd import NRDConfig, nrd
+    from ..registration._nrd import NRDConfig, nrd, prepare_nrd
     from ._fit import FitConfig, fit_sscape_batch
 
     fit_config = FitConfig() if fit_config is None else fit_config
@@ -264,9 +264,10 @@ def register_sscape_nrd(
     ).value
     n = scans.points.shape[0]
     out = []
+    prep = prepare_nrd(template, n_patches=nrd_config.n_patches)  # once for all scans
     for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
-        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, template, config=nrd_config, throw=False)
+        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, prep, config=nrd_config, throw=False)
         out.append(np.asarray(r.value.vertices))
     return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
 
