@@ -326,6 +326,28 @@ def test_variants(setup):
     )
 
 
+def test_prepared_template(setup):
+    """`prepare_nrd` once, then pass the NRDPrep: the same numbers as preparing on the fly."""
+    tmpl, truth, scan, init, out = setup
+    prep = bp.registration.prepare_nrd(tmpl, n_patches=CFG.n_patches)
+    assert isinstance(prep, bp.registration.NRDPrep) and prep.template is tmpl
+    assert prep.requested_patches == CFG.n_patches and prep.faces is tmpl.faces
+    # the smoothness groups follow the masks; the one-rings are the template topology's
+    group = np.asarray(prep.group)
+    assert (group[np.asarray(tmpl.hand_mask)] == 2).all() and (group == 1).sum() > 0
+    ring = np.asarray(tmpl.topology.one_ring)
+    np.testing.assert_array_equal(np.asarray(prep.nbr_mask), ring >= 0)
+    again = _nrd.nrd(init, scan, prep, config=CFG)
+    np.testing.assert_array_equal(np.asarray(again.value.vertices), np.asarray(out.value.vertices))
+    np.testing.assert_array_equal(np.asarray(again.stats["cg_steps"]), out.stats["cg_steps"])
+    with pytest.raises(ValueError, match="n_patches=8"):
+        _nrd.nrd(init, scan, bp.registration.prepare_nrd(tmpl, n_patches=8), config=CFG)
+    with pytest.raises(ValueError, match="RegistrationTemplate"):
+        bp.registration.prepare_nrd(init)
+    with pytest.raises(ValueError, match="n_patches"):
+        bp.registration.prepare_nrd(tmpl, n_patches=-1)
+
+
 def _replace(scan, **fields):
     kw = {f: getattr(scan, f) for f in ("points", "normals", "point_mask", "landmarks")}
     kw.update(landmark_mask=scan.landmark_mask, landmark_names=scan.landmark_names, **fields)
