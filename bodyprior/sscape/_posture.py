@@ -134,11 +134,9 @@ class PostureRig(eqx.Module):
         return self.rig.parents
 
     def _traced(self) -> PostureRig:
-        """The rig without its host-side solver: what the jitted kernels take, so that their
-        compiled programs do not depend on (are not keyed by) the solver object."""
-        if self.nh_solver is None:
-            return self
-        return dataclasses.replace(self, nh_solver=None)
+        """The rig without its host-side solver and anchor parameters (the kernels use neither):
+        what the jitted kernels take, so that their compiled programs are not keyed by them."""
+        return dataclasses.replace(self, nh_solver=None, anchor_threshold=0.0, anchor_weight=0.0)
 
 
 class LaplacianSolver:
