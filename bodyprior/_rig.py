@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._kinematics import validate_parents
@@ -84,11 +85,12 @@ class Rig(eqx.Module):
             ("regressor_indices", self.regressor_indices, n_vertices),
             ("skin_indices", self.skin_indices, n_joints),
         ):
-            if not is_tracer(arr) and arr.size and (int(arr.min()) < 0 or int(arr.max()) >= hi):
-                raise ValueError(
-                    f"`{name}` must hold indices in [0, {hi - 1}], got [{int(arr.min())}, "
-                    f"{int(arr.max())}]."
-                )
+            if is_tracer(arr) or not arr.size:
+                continue
+            a = np.asarray(arr)  # on the host: no device program per check
+            lo, top = int(a.min()), int(a.max())
+            if lo < 0 or top >= hi:
+                raise ValueError(f"`{name}` must hold indices in [0, {hi - 1}], got [{lo}, {top}].")
 
     @property
     def n_joints(self) -> int:

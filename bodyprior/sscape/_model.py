@@ -79,12 +79,13 @@ class SScapeModel(eqx.Module):
                 f"`rig` must skin the model's {n_vertices} vertices, got skin weights for "
                 f"{self.rig.n_vertices}."
             )
-        f = self.faces
-        if not is_tracer(f) and f.size and (int(f.min()) < 0 or int(f.max()) >= n_vertices):
-            raise ValueError(
-                f"`faces` must hold indices in [0, {n_vertices - 1}], got [{int(f.min())}, "
-                f"{int(f.max())}]."
-            )
+        if not is_tracer(self.faces) and self.faces.size:
+            f = np.asarray(self.faces)  # on the host: no device program per check
+            if int(f.min()) < 0 or int(f.max()) >= n_vertices:
+                raise ValueError(
+                    f"`faces` must hold indices in [0, {n_vertices - 1}], got [{int(f.min())}, "
+                    f"{int(f.max())}]."
+                )
 
     @property
     def parents(self) -> tuple[int, ...]:
