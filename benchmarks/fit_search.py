@@ -60,7 +60,7 @@ def main(argv=None):
     )
     gt = np.asarray(tmpl.restrict(pop.vertices), np.float64)
     model = sscape.learn(
-        jnp.asarray(gt[:n_train]), tmpl.faces, n_components=n_comp, **tmpl.rig_kwargs()
+        jnp.asarray(gt[:n_train]), tmpl.faces, n_components=n_comp, rig=tmpl.rig
     )
     scans, _ = registration.simulate_scans(
         np.asarray(pop.vertices[n_train:]), body.faces, body.landmark_index,

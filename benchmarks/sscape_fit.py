@@ -61,7 +61,7 @@ def main(argv=None):
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(args.n_train, body=body, progress=False, key=jr.PRNGKey(args.seed))
     model = bp.sscape.learn(
-        tmpl.restrict(pop0.vertices), tmpl.faces, n_components=args.components, **tmpl.rig_kwargs()
+        tmpl.restrict(pop0.vertices), tmpl.faces, n_components=args.components, rig=tmpl.rig
     )
     pop1 = bp.sample_population(
         args.batch, body=body, progress=False, key=jr.PRNGKey(args.seed + 1)

@@ -9,8 +9,8 @@ from . import dspp as dspp
 from . import sscape as sscape
 from ._body import (
     PHENOTYPES as PHENOTYPES,
+    BonePlacement as BonePlacement,
     DefaultBody as DefaultBody,
-    Rig as Rig,
     evaluate as evaluate,
     landmarks as landmarks,
     load_default_body as load_default_body,
@@ -22,6 +22,7 @@ from ._body import (
     sscape_rig as sscape_rig,
     variation_weights as variation_weights,
 )
+from ._rig import Rig as Rig
 from ._bvh import Bvh as Bvh, read_bvh as read_bvh, write_bvh as write_bvh
 from ._geometry import (
     barycentric_points as barycentric_points,

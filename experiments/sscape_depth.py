@@ -146,7 +146,7 @@ def _subjects(key, body, tmpl, n, n_points, progress):
     cams = kinect_pair(distance=2.4)
     faces = np.asarray(body.faces)
     lm_index = np.asarray(body.landmark_index)
-    rest_joints = np.asarray(body.rig.head_template)
+    rest_joints = np.asarray(body.bones.head_template)
     out = []
     for s, i in enumerate(tqdm(pick, desc="depth captures", disable=not progress)):
         kp, ks = jr.split(jr.fold_in(key, 1000 + s))
@@ -190,7 +190,7 @@ def _spaces(key, body, tmpl, st: Setting, progress):
         bm = np.asarray(tmpl.restrict(base.vertices), np.float64)
         k = min(kmax, st.baseline - 1)
         spaces.append(("baseline", st.baseline, learn(jnp.asarray(bm), tmpl.faces, n_components=k,
-                                                      **tmpl.rig_kwargs())))  # fmt: skip
+                                                      rig=tmpl.rig)))  # fmt: skip
     return spaces, times
 
 

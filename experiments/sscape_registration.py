@@ -198,9 +198,10 @@ def register(model, scans, tmpl, *, fit_config=None, fit_points=None, head_rule=
     for name in ("NRD", "S-SCAPE + NRD", "S-SCAPE + NRD CW"):
         t0 = time.perf_counter()
         res = []
+        prep = registration.prepare_nrd(tmpl, n_patches=cfgs[name].n_patches)  # once per config
         for i in tqdm(range(n), desc=name, disable=not progress, unit="scan"):
             r = registration.nrd(
-                inits[name][i], _index(scans, i), tmpl, config=cfgs[name], throw=False
+                inits[name][i], _index(scans, i), prep, config=cfgs[name], throw=False
             )
             res.append(np.asarray(r.value.vertices))
         out[name] = np.stack(res)
@@ -261,7 +262,7 @@ def learned_space_quality(train_meshes, test_meshes, tmpl, k, key, n_samples):
     reconstruction error (mm) per number of components."""
     aligned, _ = sscape.procrustes_align(jnp.asarray(train_meshes))
     k = min(k, len(train_meshes) - 1)  # PCA of N meshes has at most N - 1 components
-    space = sscape.learn(aligned, tmpl.faces, n_components=k, align=False, **tmpl.rig_kwargs())
+    space = sscape.learn(aligned, tmpl.faces, n_components=k, align=False, rig=tmpl.rig)
     comps = tuple(c for c in COMPONENTS if c <= k)
     gen = sscape.generalization(aligned, comps)
     spec = sscape.specificity(space, aligned, comps, key=key, n_samples=n_samples)
@@ -364,7 +365,7 @@ def main(argv=None) -> dict:
     registration.check_scan(scans)
 
     k = args.components
-    model0 = sscape.learn(jnp.asarray(init_meshes), tmpl.faces, n_components=k, **tmpl.rig_kwargs())
+    model0 = sscape.learn(jnp.asarray(init_meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
     fit_config = sscape.FitConfig(
         max_passes=size["fit_passes"],
         landmark_weight=args.fit_landmark_weight,

@@ -82,11 +82,11 @@ def _ms(components, n_train):
     return tuple(m for m in components if m <= n_train - 1)
 
 
-def space_measures(meshes, faces, rig_kwargs, components, key, n_samples, *, loo=True):
+def space_measures(meshes, faces, rig, components, key, n_samples, *, loo=True):
     """Learns a space from aligned `meshes` and returns (model, aligned, generalization (LOO),
     specificity, compactness) with errors in mm."""
     aligned, _ = sscape.procrustes_align(jnp.asarray(meshes))
-    model = sscape.learn(aligned, faces, align=False, **rig_kwargs)
+    model = sscape.learn(aligned, faces, align=False, rig=rig)
     # Leave-one-out trains on N - 1 meshes, so at most N - 2 components.
     ms = _ms(components, meshes.shape[0] - 1)
     out = {"n_train": int(meshes.shape[0]), "components": list(ms)}
@@ -166,7 +166,7 @@ def main(argv=None):
     key = jax.random.PRNGKey(args.seed)
     body = bp.load_default_body("cmu_mb", local_changes=True)
     tmpl = registration.registration_template()
-    rig = tmpl.rig_kwargs()
+    rig = tmpl.rig
     comps = size["components"]
     metrics: dict = {"mode": "quick" if args.quick else "full", "seed": args.seed, "sizes": {
         k: (list(v) if isinstance(v, tuple) else v) for k, v in size.items()}}  # fmt: skip
@@ -224,7 +224,7 @@ def main(argv=None):
     metrics["initial_space"] = {"source": args.init_space, "n_train": int(n_init),
                                 "n_components": int(size["n_init_components"])}  # fmt: skip
     init_model = sscape.learn(
-        jnp.asarray(init_meshes), tmpl.faces, n_components=size["n_init_components"], **rig
+        jnp.asarray(init_meshes), tmpl.faces, n_components=size["n_init_components"], rig=rig
     )
     # The registration experiment's settings: its fit priors (landmark term, pose prior) and NRD
     # without humanshape's head rule (the simulated heads are real; see docs/results_sscape.md).
@@ -327,7 +327,7 @@ def main(argv=None):
     series_g, series_s = {}, {}
     for n in list(size["sizes"]) + [len(train_pool)]:
         idx = rng.choice(train_pool, n, replace=False) if n < len(train_pool) else train_pool
-        model = sscape.learn(jnp.asarray(pool_aligned[idx]), tmpl.faces, align=False, **rig)
+        model = sscape.learn(jnp.asarray(pool_aligned[idx]), tmpl.faces, align=False, rig=rig)
         ms = _ms(comps, n)
         gen = sscape.reconstruction_error(model, pool_aligned[eval_idx], ms, align=False).mean(0)
         spec = sscape.specificity(model, pool_aligned, ms, key=jax.random.fold_in(key, 20 + n),
@@ -357,10 +357,11 @@ def main(argv=None):
     regs = last.registration.vertices[acc]
     poses = last.registration.poses[acc]
     sims = jax.tree_util.tree_map(lambda a: np.asarray(a)[acc], last.registration.similarities)
+    prig = sscape.posture_rig(tmpl)  # topology, Laplacian weights, NH factorisation: built once
     sets = {
         "none": np.asarray(regs, np.float64),
-        "NH": sscape.normalize_posture_nh_batch(regs, poses, tmpl, similarities=sims),
-        "WSX": sscape.normalize_posture_wsx_batch(regs, tmpl),
+        "NH": sscape.normalize_posture_nh_batch(regs, poses, prig, similarities=sims),
+        "WSX": sscape.normalize_posture_wsx_batch(regs, prig),
     }
     pn_key = jax.random.fold_in(key, 40)
     post_m = {
@@ -383,8 +384,8 @@ def main(argv=None):
     npst = min(size["n_posture"], size["pool"])
     gsets = {
         "none": pool[:npst],
-        "NH": sscape.normalize_posture_nh_batch(pool[:npst], pool_pop.poses[:npst], tmpl),
-        "WSX": sscape.normalize_posture_wsx_batch(pool[:npst], tmpl),
+        "NH": sscape.normalize_posture_nh_batch(pool[:npst], pool_pop.poses[:npst], prig),
+        "WSX": sscape.normalize_posture_wsx_batch(pool[:npst], prig),
     }
     pool_rest = np.asarray(tmpl.restrict(jax.jit(jax.vmap(
         lambda p, c: bp.rest_shape(body, p, c)[0]))(pool_pop.phenotypes[:npst],

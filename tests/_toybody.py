@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+import bodyprior as bp
 from bodyprior.sscape import SScapeModel
 
 
@@ -42,9 +43,11 @@ def tube_mesh(n_around: int = 12, n_rings: int = 30, radius: float = 0.1, height
     return verts.astype(np.float64), np.asarray(faces, dtype=np.int32)
 
 
-def toy_rig(n_around: int = 12, n_rings: int = 30, n_joints: int = 4, height: float = 1.0):
-    """Rig of the tube: `(parents, names, reg_idx (J, n_around), reg_w, skin_idx (V, 2),
-    skin_w)`."""
+def toy_rig(
+    n_around: int = 12, n_rings: int = 30, n_joints: int = 4, height: float = 1.0
+) -> bp.Rig:
+    """Rig of the tube: a chain of `n_joints` joints, each regressed from its ring's `n_around`
+    vertices, two skin influences per vertex."""
     n_vertices = n_rings * n_around + 2
     # Joint j's ring: evenly spaced, joint 0 at the bottom ring.
     joint_rings = np.round(np.linspace(0, n_rings - 1, n_joints + 1)[:-1]).astype(int)
@@ -70,7 +73,14 @@ def toy_rig(n_around: int = 12, n_rings: int = 30, n_joints: int = 4, height: fl
                 skin_w[v] = (w, 1 - w)
     parents = tuple([-1] + list(range(n_joints - 1)))
     names = tuple(["root"] + [f"joint{j}" for j in range(1, n_joints)])
-    return parents, names, reg_idx, reg_w, skin_idx, skin_w
+    return bp.Rig(
+        parents=parents,
+        joint_names=names,
+        skin_indices=skin_idx,
+        skin_weights=skin_w,
+        regressor_indices=reg_idx,
+        regressor_weights=reg_w,
+    )
 
 
 def toy_basis(verts: np.ndarray, n_components: int, seed: int = 0):
@@ -117,7 +127,7 @@ def make_toy_model(
 ) -> SScapeModel:
     """A synthetic S-SCAPE model on the tube (362 vertices and 4 joints by default)."""
     verts, faces = tube_mesh(n_around, n_rings)
-    parents, names, reg_idx, reg_w, skin_idx, skin_w = toy_rig(n_around, n_rings, n_joints)
+    rig = toy_rig(n_around, n_rings, n_joints)
     basis = toy_basis(verts, n_components, seed)
     stddev = 0.05 * 0.6 ** np.arange(n_components)
     var = stddev**2
@@ -128,10 +138,5 @@ def make_toy_model(
         stddev=stddev,
         explained_variance=explained,
         faces=faces,
-        joint_regressor_indices=reg_idx,
-        joint_regressor_weights=reg_w,
-        skin_indices=skin_idx,
-        skin_weights=skin_w,
-        parents=parents,
-        joint_names=names,
+        rig=rig,
     )

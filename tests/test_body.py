@@ -240,6 +240,23 @@ def test_regressed_joints_follow_shape(body, getkey):
         assert err.max() < 0.012  # metres; the build log reports the held-out error
 
 
+def test_rig_and_bone_placement(body):
+    """The default body holds one `bp.Rig` (tree, names, skin, regressor) and MakeHuman's
+    `bp.BonePlacement` (bone heads/tails/roll) beside it."""
+    rig, bones = body.rig, body.bones
+    assert isinstance(rig, bp.Rig) and isinstance(bones, bp.BonePlacement)
+    assert rig.n_joints == 31 and rig.n_vertices == body.n_vertices and bones.name == "cmu_mb"
+    assert body.parents == rig.parents and body.joint_names[0] == rig.joint_names[0] == "Hips"
+    assert bones.head_template.shape == bones.tail_template.shape == (31, 3)
+    np.testing.assert_allclose(np.asarray(rig.skin_weights).sum(1), 1.0, atol=1e-6)
+    # rest joints at the base body are the bone heads; the regressor reproduces them closely
+    v, j = bp.rest_shape(body, bp.phenotype_vector())
+    np.testing.assert_array_equal(bp.regress_joints(body, v), rig.regress_joints(v))
+    assert float(jnp.abs(rig.regress_joints(v) - j).max()) < 0.012
+    ge = bp.load_default_body("game_engine")
+    assert ge.rig.n_joints == 53 and ge.bones.name == "game_engine"
+
+
 def test_population(getkey):
     b = bp.load_default_body(local_changes=True)
     pop = bp.sample_population(40, body=b, progress=False, chunk=16, key=jax.random.PRNGKey(3))
@@ -285,7 +302,7 @@ def test_sscape_space_from_population():
         48, body=b, pose_jitter_deg=0.0, progress=False, key=jax.random.PRNGKey(7)
     )
     train, test = pop.vertices[:40], pop.vertices[40:]
-    space = bp.sscape.learn(train, b.faces, n_components=20, **bp.sscape_rig(b))
+    space = bp.sscape.learn(train, b.faces, n_components=20, rig=b.rig)
     assert space.n_joints == 31 and space.n_components == 20
     # Held-out bodies (rigidly aligned to the mean) are reconstructed from 20 components to a few mm.
     aligned, _ = bp.sscape.procrustes_align(jnp.concatenate([space.mean[None], test]), reference=space.mean)

@@ -31,19 +31,21 @@ def toy():
     hand[-1] = True  # the top cap vertex plays the hands (never judged)
     tmpl = RegistrationTemplate(
         vertices=jnp.asarray(v),
-        faces=model.faces,
+        topology=bp.Topology.from_faces(np.asarray(model.faces), n),
         vertex_map=jnp.arange(n),
         landmark_index=jnp.arange(4) * 16,
         landmark_error=jnp.zeros(4),
         hand_mask=jnp.asarray(hand),
         head_mask=jnp.asarray(v[:, 2] > 0.7),
-        skin_index=model.skin_indices,
-        skin_weight=model.skin_weights,
-        joint_regressor_indices=model.joint_regressor_indices,
-        joint_regressor_weights=model.joint_regressor_weights,
+        rig=bp.Rig(
+            parents=model.parents,
+            joint_names=NAMES,
+            skin_indices=model.rig.skin_indices,
+            skin_weights=model.rig.skin_weights,
+            regressor_indices=model.rig.regressor_indices,
+            regressor_weights=model.rig.regressor_weights,
+        ),
         regressor_max_error=0.0,
-        parents=model.parents,
-        joint_names=NAMES,
         landmark_names=("a", "b", "c", "d"),
     )
     rng = np.random.default_rng(0)
@@ -117,7 +119,7 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
         v = bodies + noise + np.where(good[:, None, None], 0.0, 0.04)
         return Registration(v, np.zeros((len(bodies), 4, 3)), None)
 
-    init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, **tmpl.rig_kwargs())
+    init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, rig=tmpl.rig)
     res = bootstrap(init, scans, tmpl, n_passes=4, n_components=10, register=register)
     assert res.accepted_per_pass == [6, 12, 12, 12]
     assert seen == [1, 5, 10, 10]  # each pass registers from the space of the previous one

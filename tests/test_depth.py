@@ -173,7 +173,7 @@ def problem():
     phen = jr.uniform(jr.PRNGKey(3), (12, 11), minval=0.2, maxval=0.8)
     rest = jax.vmap(lambda p: bp.rest_shape(body, p)[0])(phen)
     model = bp.sscape.learn(tmpl.restrict(rest).astype(jnp.float64), tmpl.faces,
-                            n_components=K_TEST, **tmpl.rig_kwargs())  # fmt: skip
+                            n_components=K_TEST, rig=tmpl.rig)  # fmt: skip
     return tmpl, model
 
 
@@ -237,7 +237,7 @@ def test_fit_depth_bad_input():
     tmpl = registration_template()
     v0 = jnp.asarray(tmpl.vertices, jnp.float64)
     model = bp.sscape.learn(jnp.stack([v0, 1.02 * v0, 0.97 * v0]), tmpl.faces, n_components=1,
-                            **tmpl.rig_kwargs())  # fmt: skip
+                            rig=tmpl.rig)  # fmt: skip
     cam = DepthCamera([0.0, -2.4, 0.0], [0.0, 0.0, 0.0])
     v = np.asarray(model.mean)
     depth, _ = render_depth(v, tmpl.faces, cam)

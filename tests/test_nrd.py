@@ -29,19 +29,21 @@ def _toy_template() -> bp.registration.RegistrationTemplate:
     lm = np.concatenate([lm, [1]])  # one landmark on a hand vertex: γ = 0 there
     return bp.registration.RegistrationTemplate(
         vertices=jnp.asarray(verts),
-        faces=jnp.asarray(faces),
+        topology=bp.Topology.from_faces(faces, V),
         vertex_map=jnp.arange(V, dtype=jnp.int32),
         landmark_index=jnp.asarray(lm),
         landmark_error=jnp.zeros(len(lm)),
         hand_mask=jnp.asarray(hand),
         head_mask=jnp.asarray(head),
-        skin_index=jnp.asarray(bone[:, None]),
-        skin_weight=jnp.ones((V, 1)),
-        joint_regressor_indices=jnp.zeros((3, 1), jnp.int32),
-        joint_regressor_weights=jnp.ones((3, 1)),
+        rig=bp.Rig(
+            parents=(-1, 0, 0),
+            joint_names=("root", "Hand", "Head"),
+            skin_indices=jnp.asarray(bone[:, None]),
+            skin_weights=jnp.ones((V, 1)),
+            regressor_indices=jnp.zeros((3, 1), jnp.int32),
+            regressor_weights=jnp.ones((3, 1)),
+        ),
         regressor_max_error=0.0,
-        parents=(-1, 0, 0),
-        joint_names=("root", "Hand", "Head"),
         landmark_names=tuple(f"lm{i}" for i in range(len(lm))),
     )
 
@@ -194,14 +196,14 @@ def test_energy_gradient_and_normal_equations(getkey):
     verts, faces = tube_mesh(5, 4, radius=0.1, height=0.3)
     V = verts.shape[0]
     tmpl_like = bp.registration.RegistrationTemplate(
-        vertices=jnp.asarray(verts), faces=jnp.asarray(faces), vertex_map=jnp.arange(V),
-        landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
+        vertices=jnp.asarray(verts), topology=bp.Topology.from_faces(faces, V),
+        vertex_map=jnp.arange(V), landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
         hand_mask=jnp.zeros(V, bool).at[:3].set(True),
         head_mask=jnp.zeros(V, bool).at[-5:].set(True),
-        skin_index=jnp.zeros((V, 1), jnp.int32), skin_weight=jnp.ones((V, 1)),
-        joint_regressor_indices=jnp.zeros((1, 1), jnp.int32),
-        joint_regressor_weights=jnp.ones((1, 1)),
-        regressor_max_error=0.0, parents=(-1,), joint_names=("root",), landmark_names=("a", "b"),
+        rig=bp.Rig(parents=(-1,), joint_names=("root",), skin_indices=jnp.zeros((V, 1), jnp.int32),
+                   skin_weights=jnp.ones((V, 1)), regressor_indices=jnp.zeros((1, 1), jnp.int32),
+                   regressor_weights=jnp.ones((1, 1))),
+        regressor_max_error=0.0, landmark_names=("a", "b"),
     )  # fmt: skip
     prep = _nrd._prepare(tmpl_like, 2)
     ph = jnp.concatenate([1000 * jnp.asarray(verts), jnp.ones((V, 1))], axis=1)
@@ -322,6 +324,28 @@ def test_variants(setup):
         np.asarray(cw.stats["mean_distance_mm"])[n - 1]
         > np.asarray(out.stats["mean_distance_mm"])[int(out.stats["rounds"]) - 1]
     )
+
+
+def test_prepared_template(setup):
+    """`prepare_nrd` once, then pass the NRDPrep: the same numbers as preparing on the fly."""
+    tmpl, truth, scan, init, out = setup
+    prep = bp.registration.prepare_nrd(tmpl, n_patches=CFG.n_patches)
+    assert isinstance(prep, bp.registration.NRDPrep) and prep.template is tmpl
+    assert prep.requested_patches == CFG.n_patches and prep.faces is tmpl.faces
+    # the smoothness groups follow the masks; the one-rings are the template topology's
+    group = np.asarray(prep.group)
+    assert (group[np.asarray(tmpl.hand_mask)] == 2).all() and (group == 1).sum() > 0
+    ring = np.asarray(tmpl.topology.one_ring)
+    np.testing.assert_array_equal(np.asarray(prep.nbr_mask), ring >= 0)
+    again = _nrd.nrd(init, scan, prep, config=CFG)
+    np.testing.assert_array_equal(np.asarray(again.value.vertices), np.asarray(out.value.vertices))
+    np.testing.assert_array_equal(np.asarray(again.stats["cg_steps"]), out.stats["cg_steps"])
+    with pytest.raises(ValueError, match="n_patches=8"):
+        _nrd.nrd(init, scan, bp.registration.prepare_nrd(tmpl, n_patches=8), config=CFG)
+    with pytest.raises(ValueError, match="RegistrationTemplate"):
+        bp.registration.prepare_nrd(init)
+    with pytest.raises(ValueError, match="n_patches"):
+        bp.registration.prepare_nrd(tmpl, n_patches=-1)
 
 
 def _replace(scan, **fields):

@@ -96,6 +96,40 @@ def test_wsx_recovers_rest_posture(toy):
     assert np.all(_aligned_err_mm(zd, rest) < base)
 
 
+def test_posture_rig_carries_its_precomputation(toy):
+    """The PostureRig holds the topology, the float64 rig and the factorised NH system; passing it
+    gives exactly what passing the model gives, and separately built rigs share compiled kernels."""
+    model, rest, posed, poses = toy
+    rig = posture_rig(model)
+    assert isinstance(rig.rig, bp.Rig) and rig.rig.skin_weights.dtype == jnp.float64
+    assert rig.parents == model.parents and rig.topology.n_vertices == model.n_vertices
+    np.testing.assert_array_equal(rig.faces, model.faces)
+    assert isinstance(rig.nh_solver, bp.sscape.LaplacianSolver)
+    assert (rig.anchor_threshold, rig.anchor_weight) == (0.8, 10.0)
+    x_model = normalize_posture_nh_batch(posed, poses, model)
+    np.testing.assert_array_equal(normalize_posture_nh_batch(posed, poses, rig), x_model)
+    np.testing.assert_array_equal(
+        normalize_posture_wsx_batch(posed, rig), normalize_posture_wsx_batch(posed, model)
+    )
+    # other anchor parameters than the rig's: a system factorised for the call, as from scratch
+    other = normalize_posture_nh_batch(posed, poses, rig, anchor_weight=3.0)
+    fresh = posture_rig(model, anchor_weight=3.0)
+    assert fresh.nh_solver is not rig.nh_solver
+    np.testing.assert_array_equal(
+        other, normalize_posture_nh_batch(posed, poses, fresh, anchor_weight=3.0)
+    )
+    assert np.abs(other - x_model).max() > 1e-6
+    # the jitted kernels see the rig without its solver: equal structure for separate rigs
+    traced = rig._traced()
+    assert traced.nh_solver is None
+    assert jax.tree_util.tree_structure(rig) != jax.tree_util.tree_structure(traced)
+    for other_rig in (fresh, posture_rig(model), posture_rig(model, factorize=False)):
+        assert jax.tree_util.tree_structure(other_rig._traced()) == jax.tree_util.tree_structure(
+            traced
+        )
+    assert posture_rig(model, factorize=False).nh_solver is None
+
+
 def test_learn_normalized_and_errors(toy):
     model, rest, posed, poses = toy
     m, norm = learn_normalized(posed, model, "nh", poses=poses, n_components=2)
@@ -106,6 +140,9 @@ def test_learn_normalized_and_errors(toy):
         normalize_posture_wsx_batch(posed[:, :-1], model)
     with pytest.raises(ValueError, match="template"):
         posture_rig(object())
+    with pytest.raises(ValueError, match="anchor_threshold"):
+        posture_rig(model, anchor_threshold=1.5)
+
     with pytest.raises(ValueError, match="method"):
         learn_normalized(posed, model, "xyz")
     assert not np.any(np.isnan(jax.device_get(norm)))

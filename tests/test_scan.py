@@ -358,7 +358,7 @@ def size_space(tmpl):
     v = jnp.asarray(tmpl.vertices, jnp.float64)
     c = v.mean(0)
     meshes = jnp.stack([c + (v - c) * s for s in (0.95, 1.0, 1.05)])
-    return sscape.learn(meshes, tmpl.faces, n_components=1, **tmpl.rig_kwargs())
+    return sscape.learn(meshes, tmpl.faces, n_components=1, rig=tmpl.rig)
 
 
 def test_registration_survives_hard_scans(subject, tmpl, size_space):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from _toybody import make_toy_model
 
+import bodyprior as bp
 from bodyprior._kinematics import Similarity
 from bodyprior._rotations import axis_angle_to_matrix, matrix_to_rotation
 from bodyprior.sscape import (
@@ -197,20 +198,60 @@ def test_input_validation(model):
     with pytest.raises(ValueError, match="basis"):
         eqx.tree_at(lambda m: m.basis, model, model.basis[:, :10]).__check_init__()
     with pytest.raises(ValueError, match="skin_indices"):
-        SScapeModel(
-            **{f: getattr(model, f) for f in _FIELDS if f != "skin_indices"},
-            skin_indices=model.skin_indices + 10,
-        )
+        _with_rig(model, skin_indices=model.rig.skin_indices + 10)
     with pytest.raises(ValueError, match="joint_names"):
-        SScapeModel(
-            **{f: getattr(model, f) for f in _FIELDS if f != "joint_names"}, joint_names=("a",)
-        )
+        _with_rig(model, joint_names=("a",))
+    with pytest.raises(ValueError, match="regressor_indices"):
+        _with_rig(model, regressor_indices=model.rig.regressor_indices + model.n_vertices)
+    with pytest.raises(ValueError, match="`rig` must skin"):
+        small = bp.Rig(**{**_rig_fields(model.rig), "skin_indices": model.rig.skin_indices[:10],
+                          "skin_weights": model.rig.skin_weights[:10],
+                          "regressor_indices": model.rig.regressor_indices % 10})  # fmt: skip
+        SScapeModel(**{f: getattr(model, f) for f in _FIELDS[:5]}, rig=small)
+    with pytest.raises(ValueError, match="`rig` must be"):
+        SScapeModel(**{f: getattr(model, f) for f in _FIELDS[:5]}, rig=None)
 
 
+# The leaves of a saved model, under their file (and former field) names.
 _FIELDS = [
     "mean", "basis", "stddev", "explained_variance", "faces", "joint_regressor_indices",
     "joint_regressor_weights", "skin_indices", "skin_weights", "parents", "joint_names",
 ]  # fmt: skip
+_RIG_FIELDS = (
+    "parents", "joint_names", "skin_indices", "skin_weights", "regressor_indices",
+    "regressor_weights",
+)  # fmt: skip
+
+
+def _rig_fields(rig):
+    return {f: getattr(rig, f) for f in _RIG_FIELDS}
+
+
+def _with_rig(model, **changes):
+    rig = bp.Rig(**{**_rig_fields(model.rig), **changes})
+    return SScapeModel(**{f: getattr(model, f) for f in _FIELDS[:5]}, rig=rig)
+
+
+def test_rig_module(model):
+    rig = model.rig
+    assert isinstance(rig, bp.Rig) and rig.n_joints == 4 and rig.n_vertices == model.n_vertices
+    # the former field names read the rig
+    assert model.parents == rig.parents and model.joint_names == rig.joint_names
+    assert model.skin_indices is rig.skin_indices and model.skin_weights is rig.skin_weights
+    assert model.joint_regressor_indices is rig.regressor_indices
+    assert model.joint_regressor_weights is rig.regressor_weights
+    assert rig.skin_indices.dtype == jnp.int32 and rig.regressor_indices.dtype == jnp.int32
+    v = model.shape_vertices(jnp.ones(2))
+    np.testing.assert_array_equal(rig.regress_joints(v), model.rest_joints(v))
+    a = jnp.broadcast_to(jnp.eye(4), (4, 4, 4)).at[2, :3, 3].set(jnp.array([0.1, 0.0, 0.0]))
+    np.testing.assert_array_equal(rig.skin(v, a), bp.lbs(v, rig.skin_indices, rig.skin_weights, a))
+    moved = np.asarray(rig.skin(v, a, method="dqs")) - np.asarray(v)
+    assert np.abs(moved[:, 0]).max() > 0.09 and np.abs(moved[:, 1:]).max() < 1e-9
+    with pytest.raises(ValueError, match="method"):
+        rig.skin(v, a, method="xyz")
+    with pytest.raises(ValueError, match="parents"):
+        bp.Rig(**{**_rig_fields(rig), "parents": (-1, 0, 1, -1)})
+    assert rig.astype(jnp.float32).skin_weights.dtype == jnp.float32
 
 
 def test_truncate(model):
@@ -392,9 +433,52 @@ def test_save_load_round_trip(model, tmp_path):
         a, b = np.asarray(getattr(model, f)), np.asarray(getattr(loaded, f))
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), f
     assert sorted(os.listdir(tmp_path)) == ["toy.sscape"]  # no temp files left behind
+    assert isinstance(loaded.rig, bp.Rig)
     save_model(path, truncate(model, 2))  # overwrite atomically
     assert load_model(path).n_components == 2
     assert sorted(os.listdir(tmp_path)) == ["toy.sscape"]
+
+
+def test_load_file_written_before_the_rig_module(tmp_path):
+    """`tests/data/sscape_v1_toy.sscape` was written by `save_model` before SScapeModel held a Rig
+    (commit 35d51cb, `make_toy_model(2, n_around=6, n_rings=6, n_joints=3)`); it loads into the
+    same model, and today's writer writes the same leaves and metadata."""
+    path = os.path.join(os.path.dirname(__file__), "data", "sscape_v1_toy.sscape")
+    old = load_model(path)
+    now = make_toy_model(2, n_around=6, n_rings=6, n_joints=3)
+    assert isinstance(old.rig, bp.Rig) and old.parents == now.parents == (-1, 0, 1)
+    assert old.joint_names == now.joint_names
+    for f in _FIELDS[:9]:
+        a, b = np.asarray(getattr(old, f)), np.asarray(getattr(now, f))
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+    with zipfile.ZipFile(path) as z:
+        old_meta, old_leaves = json.loads(z.read("metadata.json")), z.read("leaves.eqx")
+    save_model(tmp_path / "again.sscape", old)
+    with zipfile.ZipFile(tmp_path / "again.sscape") as z:
+        assert json.loads(z.read("metadata.json")) == old_meta
+        assert z.read("leaves.eqx") == old_leaves
+
+
+def test_learn_rig_argument_and_deprecated_spellings(model, getkey):
+    meshes, _ = _low_rank_meshes(model, getkey(), n=6)
+    ref = learn(meshes, model.faces, n_components=2, rig=model.rig)
+    assert ref.rig is model.rig
+    old = {"parents": model.parents, "joint_names": model.joint_names,
+           "joint_regressor_indices": model.joint_regressor_indices,
+           "joint_regressor_weights": model.joint_regressor_weights,
+           "skin_indices": model.skin_indices, "skin_weights": model.skin_weights}  # fmt: skip
+    with pytest.warns(DeprecationWarning, match="rig"):
+        legacy = learn(meshes, model.faces, n_components=2, **old)
+    assert eqx.tree_equal(legacy.rig, model.rig) and legacy.parents == model.parents
+    np.testing.assert_array_equal(legacy.basis, ref.basis)
+    with pytest.raises(ValueError, match="missing"):
+        learn(meshes, model.faces, parents=model.parents)
+    with pytest.raises(ValueError, match="not both"):
+        learn(meshes, model.faces, rig=model.rig, template=model)
+    with pytest.raises(ValueError, match="`rig` must be"):
+        learn(meshes, model.faces, rig=dict(parents=(-1,)))
+    with pytest.raises(TypeError, match="unexpected"):
+        learn(meshes, model.faces, skin=1)
 
 
 def _rewrite(path, out, *, meta=None, payload=None):

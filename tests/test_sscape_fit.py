@@ -86,7 +86,7 @@ def setup():
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(24, body=body, progress=False, key=jr.PRNGKey(0))
     model = bp.sscape.learn(
-        tmpl.restrict(pop0.vertices), tmpl.faces, n_components=8, **tmpl.rig_kwargs()
+        tmpl.restrict(pop0.vertices), tmpl.faces, n_components=8, rig=tmpl.rig
     )
     names = model.joint_names
     sim = bp.Similarity.from_scale(

@@ -33,21 +33,41 @@ def test_masks_and_skin(tmpl):
     # hands are the lateral extremes of the A-pose body, the head is on top
     assert np.abs(v[hand, 0]).min() > 0.5 * np.abs(v[:, 0]).max()
     assert v[head, 2].min() > np.percentile(v[:, 2], 75)
-    np.testing.assert_allclose(np.asarray(tmpl.skin_weight).sum(1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(tmpl.rig.skin_weights).sum(1), 1.0, atol=1e-6)
+
+
+def test_template_carries_rig_and_topology(tmpl):
+    body = bp.load_default_body("cmu_mb")
+    assert isinstance(tmpl.rig, bp.Rig) and isinstance(tmpl.topology, bp.Topology)
+    assert tmpl.rig.n_vertices == tmpl.topology.n_vertices == tmpl.n_vertices
+    assert tmpl.parents == body.parents and tmpl.joint_names == body.joint_names
+    assert tmpl.faces is tmpl.topology.faces
+    ref = bp.Topology.from_faces(np.asarray(tmpl.faces), tmpl.n_vertices)
+    assert jax.tree_util.tree_structure(ref) == jax.tree_util.tree_structure(tmpl.topology)
+    for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(tmpl.topology)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the skin weights are the full body's, restricted to the kept vertices (then renormalised)
+    vm = np.asarray(tmpl.vertex_map)
+    np.testing.assert_array_equal(tmpl.rig.skin_indices, np.asarray(body.rig.skin_indices)[vm])
+    # the deprecated spelling still reaches learn()
+    with pytest.warns(DeprecationWarning, match="rig=template.rig"):
+        assert tmpl.rig_kwargs() == {"rig": tmpl.rig}
+    with pytest.warns(DeprecationWarning, match="rig=body.rig"):
+        assert bp.sscape_rig(body) == {"rig": body.rig}
 
 
 def test_regressor_recovers_exact_joints(tmpl):
     body = bp.load_default_body("cmu_mb")
     phen, _, _ = bp.sample_phenotypes(16, key=jr.PRNGKey(7))
     verts, joints = jax.vmap(lambda p: bp.rest_shape(body, p))(phen)
-    w = np.asarray(tmpl.joint_regressor_weights)
+    w = np.asarray(tmpl.rig.regressor_weights)
     np.testing.assert_allclose(w.sum(1), 1.0, atol=2e-5)
-    pred = np.einsum("jm,sjmc->sjc", w, np.asarray(tmpl.restrict(verts))[:, tmpl.joint_regressor_indices])
+    pred = np.asarray(jax.vmap(tmpl.rig.regress_joints)(tmpl.restrict(verts)))
     err = np.linalg.norm(pred - np.asarray(joints), axis=-1)
     assert err.max() < 0.01 and tmpl.regressor_max_error < 0.01
-    # the kwargs build an S-SCAPE model directly
-    space = bp.sscape.learn(tmpl.restrict(verts), tmpl.faces, n_components=4, **tmpl.rig_kwargs())
-    assert space.mean.shape == (6449, 3)
+    # the rig builds an S-SCAPE model directly
+    space = bp.sscape.learn(tmpl.restrict(verts), tmpl.faces, n_components=4, rig=tmpl.rig)
+    assert space.mean.shape == (6449, 3) and space.rig is tmpl.rig
 
 
 def test_bad_arguments():
@@ -60,7 +80,7 @@ def test_bad_arguments():
 def _assert_same_template(a, b):
     la, ta = jax.tree_util.tree_flatten(a)
     lb, tb = jax.tree_util.tree_flatten(b)
-    assert ta == tb  # static fields: regressor_max_error, parents, names
+    assert ta == tb  # static fields: regressor_max_error, rig parents and names, topology sizes
     for x, y in zip(la, lb):
         assert np.asarray(x).dtype == np.asarray(y).dtype
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -80,10 +80,16 @@ from ._nrd import (
     NRDFit as NRDFit,
 )
 from ._nrd import (
+    NRDPrep as NRDPrep,
+)
+from ._nrd import (
     nrd as nrd,
 )
 from ._nrd import (
     nrd_batch as nrd_batch,
+)
+from ._nrd import (
+    prepare_nrd as prepare_nrd,
 )
 from ._scan import (
     Scan as Scan,

@@ -89,7 +89,6 @@ the vertex itself counts as inside the head cone.
 
 from __future__ import annotations
 
-import hashlib
 import math
 
 import equinox as eqx
@@ -100,13 +99,12 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._geometry import vertex_normals
 from .._solution import RESULTS, Solution, _check
-from .._topology import Topology
 from .._validate import check_array
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
 from ._template import RegistrationTemplate
 
-__all__ = ["NRDConfig", "NRDFit", "nrd", "nrd_batch"]
+__all__ = ["NRDConfig", "NRDFit", "NRDPrep", "nrd", "nrd_batch", "prepare_nrd"]
 
 _MM = 1000.0  # metres -> millimetres
 
@@ -116,7 +114,8 @@ _MM = 1000.0  # metres -> millimetres
 
 
 class NRDConfig(eqx.Module):
-    """Weights, schedule, correspondence rules and solver settings of [`bodyprior.registration.nrd`][].
+    """Weights, schedule, correspondence rules and solver settings of
+    [`bodyprior.registration.nrd`][].
 
     All fields are Python scalars (static under `jit`); defaults follow the paper and humanshape.
 
@@ -230,23 +229,40 @@ class NRDFit(eqx.Module):
 
 
 # --------------------------------------------------------------------------------------------------
-# Host-side preparation (topology, groups, head plane, patches), cached per template
+# Host-side preparation (smoothness groups, head plane, coarse patches), built once per template
 
 
-class _Prep(eqx.Module):
-    """Template bookkeeping for NRD; arrays are leaves, sizes static."""
+class NRDPrep(eqx.Module):
+    """A registration template prepared for NRD: the host-side bookkeeping of
+    [`bodyprior.registration.nrd`][], computed once by [`bodyprior.registration.prepare_nrd`][] and
+    passed in place of the template (`nrd(init, scan, prep)`), so that repeated calls skip it.
 
-    faces: Int[Array, "F 3"]
-    nbr: Int[Array, "V K"]  # one-ring, padded with the vertex itself
+    Arrays are leaves, sizes static. **Fields:** `template` (the
+    [`bodyprior.registration.RegistrationTemplate`][] it was built from, with its topology);
+    `nbr` `(V, K)` one-rings padded with the vertex itself and `nbr_mask`; `group` `(V,)`
+    smoothness group (0 body, 1 head, 2 hand); `data_ok` `(V,)` (not a hand vertex); `head_cand`
+    `(H,)` head-rule candidates; `anchors` `(3,)` template vertices spanning the head/body plane and
+    static `plane_sign`; `patch` `(V,)` coarse-preconditioner patch of every vertex; static
+    `n_patches` (patches built), `requested_patches` (the `NRDConfig.n_patches` it serves) and
+    `n_nb` (`sum_i |N(i)|`, each undirected edge twice).
+    """
+
+    template: RegistrationTemplate
+    nbr: Int[Array, "V K"]
     nbr_mask: Bool[Array, "V K"]
-    group: Int[Array, " V"]  # 0 body, 1 head, 2 hand (smoothness groups)
-    data_ok: Bool[Array, " V"]  # not a hand vertex
-    head_cand: Int[Array, " H"]  # head-rule candidates (head_mask, not hands)
-    anchors: Int[Array, " 3"]  # template vertices spanning the head/body plane
+    group: Int[Array, " V"]
+    data_ok: Bool[Array, " V"]
+    head_cand: Int[Array, " H"]
+    anchors: Int[Array, " 3"]
+    patch: Int[Array, " V"]
     plane_sign: float = eqx.field(static=True)
-    patch: Int[Array, " V"]  # coarse-preconditioner patch of every vertex
     n_patches: int = eqx.field(static=True)
-    n_nb: int = eqx.field(static=True)  # Σ_i |N(i)| (each undirected edge twice)
+    requested_patches: int = eqx.field(static=True)
+    n_nb: int = eqx.field(static=True)
+
+    @property
+    def faces(self) -> Int[Array, "F 3"]:
+        return self.template.faces
 
 
 def _head_plane(verts, edges, head_bone, head_mask):
@@ -303,25 +319,32 @@ def _patches(verts, edges, n_patches):
     return lookup[src].astype(np.int32), k
 
 
-def _template_key(tmpl: RegistrationTemplate, n_patches: int) -> str:
-    h = hashlib.sha1()
-    for a in (tmpl.vertices, tmpl.faces, tmpl.hand_mask, tmpl.head_mask, tmpl.skin_index):
-        a = np.asarray(a)
-        h.update(str((a.shape, a.dtype)).encode())
-        h.update(a.tobytes())
-    h.update(repr((tmpl.joint_names, n_patches)).encode())
-    return h.hexdigest()
+def prepare_nrd(template: RegistrationTemplate, *, n_patches: int = 64) -> NRDPrep:
+    """Prepares `template` for [`bodyprior.registration.nrd`][] once (host side, tens of ms for
+    the 6,449-vertex template): smoothness groups from the hand/head masks, the head/body plane
+    from the `Head` bone's skin weights, and `n_patches` connected patches for the coarse
+    preconditioner (farthest-point seeds grown along edges).
+
+    **Arguments:**
+
+    - `template`: a [`bodyprior.registration.RegistrationTemplate`][].
+    - `n_patches`: the `NRDConfig.n_patches` of the calls it will serve (0 = block Jacobi only).
+
+    **Returns:** an [`bodyprior.registration.NRDPrep`][], accepted wherever `nrd`/`nrd_batch`
+    take a template (with an `NRDConfig` of the same `n_patches`).
+    """
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
+        )
+    if isinstance(n_patches, bool) or not isinstance(n_patches, (int, np.integer)) or n_patches < 0:
+        raise ValueError(f"`n_patches` must be a non-negative int, got {n_patches!r}.")
+    return _prepare(template, int(n_patches))
 
 
-_PREP_CACHE: dict[str, _Prep] = {}
-
-
-def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> _Prep:
-    key = _template_key(tmpl, n_patches)
-    if key in _PREP_CACHE:
-        return _PREP_CACHE[key]
+def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> NRDPrep:
     verts = np.asarray(tmpl.vertices, np.float64)
-    topo = Topology.from_faces(np.asarray(tmpl.faces), verts.shape[0])
+    topo = tmpl.topology
     edges = np.asarray(topo.edges)
     ring = np.asarray(topo.one_ring)
     mask = ring >= 0
@@ -330,7 +353,8 @@ def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> _Prep:
     head = np.asarray(tmpl.head_mask, bool) & ~hand
     group = np.where(hand, 2, np.where(head, 1, 0)).astype(np.int32)
     # The head-bone region (without the neck) defines the plane, as humanshape's three vertices do.
-    sidx, sw = np.asarray(tmpl.skin_index), np.asarray(tmpl.skin_weight, np.float64)
+    sidx = np.asarray(tmpl.rig.skin_indices)
+    sw = np.asarray(tmpl.rig.skin_weights, np.float64)
     is_head_bone = np.array([n == "Head" for n in tmpl.joint_names])
     head_bone = (sw * is_head_bone[sidx]).sum(1) > 0.5
     if not head_bone.any():
@@ -341,23 +365,20 @@ def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> _Prep:
         patch, k = _patches(verts, edges, n_patches)
     else:
         patch, k = np.zeros(verts.shape[0], np.int32), 0
-    prep = _Prep(
-        faces=jnp.asarray(np.asarray(tmpl.faces), jnp.int32),
+    return NRDPrep(
+        template=tmpl,
         nbr=jnp.asarray(nbr),
         nbr_mask=jnp.asarray(mask),
         group=jnp.asarray(group),
         data_ok=jnp.asarray(~hand),
         head_cand=jnp.asarray(head_cand),
         anchors=jnp.asarray(anchors),
-        plane_sign=float(sign),
         patch=jnp.asarray(patch),
+        plane_sign=float(sign),
         n_patches=int(k),
+        requested_patches=int(n_patches),
         n_nb=int(mask.sum()),
     )
-    if len(_PREP_CACHE) > 8:
-        _PREP_CACHE.clear()
-    _PREP_CACHE[key] = prep
-    return prep
 
 
 # --------------------------------------------------------------------------------------------------
@@ -398,7 +419,7 @@ def _cone_ball(radius: float, half_angle_deg: float) -> tuple[float, float]:
     return c, c
 
 
-def _grids(points, pmask, cfg: NRDConfig, prep: _Prep) -> tuple[_Grid, _Grid | None]:
+def _grids(points, pmask, cfg: NRDConfig, prep: NRDPrep) -> tuple[_Grid, _Grid | None]:
     """The body grid (cells of `max_dist / _REACH`) and, with the head rule, the head grid."""
     grid_b = _grid_build(points, pmask, cfg.max_dist_mm / _REACH)
     if not (cfg.head_rule and prep.head_cand.shape[0] > 0):
@@ -407,7 +428,7 @@ def _grids(points, pmask, cfg: NRDConfig, prep: _Prep) -> tuple[_Grid, _Grid | N
     return grid_b, _grid_build(points, pmask, ball / _REACH)
 
 
-def _correspond(prep: _Prep, cfg: NRDConfig, y, grids, points, normals, pmask):
+def _correspond(prep: NRDPrep, cfg: NRDConfig, y, grids, points, normals, pmask):
     """Compatible scan point of every deformed template vertex (all in mm); `(idx, valid)`."""
     grid_b, grid_h = grids
     vn = vertex_normals(y, prep.faces)
@@ -458,7 +479,7 @@ def _apply(ph: Float[Array, "V 4"], X: Float[Array, "V 4 3"]) -> Float[Array, "V
     return y
 
 
-def _energy(X, ph, rnd: _Round, prep: _Prep) -> tuple[Array, tuple[Array, Array, Array]]:
+def _energy(X, ph, rnd: _Round, prep: NRDPrep) -> tuple[Array, tuple[Array, Array, Array]]:
     """`E = α E_d + β E_s + γ E_l` (weights folded into `rnd`) and its three weighted terms."""
     y = _apply(ph, X)
     e_d = jnp.sum(rnd.wd * jnp.sum((y - rnd.q) ** 2, axis=-1))
@@ -503,7 +524,7 @@ class _System(eqx.Module):
         return z
 
 
-def _system(rnd: _Round, ph, prep: _Prep, coarse: bool) -> _System:
+def _system(rnd: _Round, ph, prep: NRDPrep, coarse: bool) -> _System:
     V = ph.shape[0]
     d = rnd.wd + jax.ops.segment_sum(rnd.wl, rnd.lm_v, num_segments=V)
     target = rnd.wd[:, None] * rnd.q + jax.ops.segment_sum(
@@ -594,7 +615,9 @@ def _schedule(cfg: NRDConfig):
     return alpha, beta, beta_head, gamma
 
 
-def _run(init, prep: _Prep, lm_v, lm_use, points, normals, pmask, landmarks, lmask, cfg: NRDConfig):
+def _run(
+    init, prep: NRDPrep, lm_v, lm_use, points, normals, pmask, landmarks, lmask, cfg: NRDConfig
+):
     dtype = init.dtype
     V = init.shape[0]
     alpha, beta, beta_head, gamma = (jnp.asarray(a, dtype) for a in _schedule(cfg))
@@ -740,13 +763,27 @@ def _landmark_map(template: RegistrationTemplate, names) -> tuple[Array, Array]:
     return jnp.asarray(v), jnp.asarray(use)
 
 
-def _check_inputs(init_vertices, template, config, batched: bool):
-    if not isinstance(template, RegistrationTemplate):
-        raise ValueError(
-            f"`template` must be a RegistrationTemplate, got {type(template).__name__}."
-        )
+def _template_and_prep(template, config) -> tuple[RegistrationTemplate, NRDPrep]:
+    """`template` (a RegistrationTemplate, prepared here, or an NRDPrep) -> (template, prep)."""
     if not isinstance(config, NRDConfig):
         raise ValueError(f"`config` must be an NRDConfig, got {type(config).__name__}.")
+    if isinstance(template, NRDPrep):
+        if template.requested_patches != config.n_patches:
+            raise ValueError(
+                f"`template` is an NRDPrep built for n_patches={template.requested_patches} but "
+                f"`config.n_patches` is {config.n_patches}; build it with "
+                f"prepare_nrd(template, n_patches={config.n_patches})."
+            )
+        return template.template, template
+    if not isinstance(template, RegistrationTemplate):
+        raise ValueError(
+            "`template` must be a RegistrationTemplate or an NRDPrep, got "
+            f"{type(template).__name__}."
+        )
+    return template, _prepare(template, config.n_patches)
+
+
+def _check_inputs(init_vertices, template, config, batched: bool):
     if not jax.config.jax_enable_x64:
         raise ValueError(
             "NRD solves its normal equations in float64: enable it first with "
@@ -766,7 +803,7 @@ def _dtype_cast(init, arrays):
 def nrd(
     init_vertices: Float[Array, "V 3"],
     scan,
-    template: RegistrationTemplate,
+    template: RegistrationTemplate | NRDPrep,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
@@ -782,12 +819,16 @@ def nrd(
     - `init_vertices`: the template mesh to deform, shape `(V, 3)`, metres, in the scan frame and
       in correspondence with `template` (`V = template.n_vertices`). "NRD": the static template
       aligned to the scan by the landmark similarity
-      (`fit_similarity(...).apply(template.vertices)`); "S-SCAPE + NRD": `SScapeFit.vertices`. The transforms start at the identity on it.
-    - `scan`: a [`bodyprior.registration.Scan`][] (points, unit normals, masks, landmarks in metres);
-      landmarks are matched to the template's by name, missing ones are ignored.
+      (`fit_similarity(...).apply(template.vertices)`); "S-SCAPE + NRD": `SScapeFit.vertices`.
+      The transforms start at the identity on it.
+    - `scan`: a [`bodyprior.registration.Scan`][] (points, unit normals, masks, landmarks in
+      metres); landmarks are matched to the template's by name, missing ones are ignored.
     - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, landmarks,
-      hand/head masks).
-    - `config`: an [`bodyprior.registration.NRDConfig`][]; `NRDConfig(constant_weights=True)` is NRD CW.
+      hand/head masks), prepared for NRD on the fly, or one prepared once with
+      [`bodyprior.registration.prepare_nrd`][] (an [`bodyprior.registration.NRDPrep`][] built for
+      `config.n_patches`), which skips that step in repeated calls.
+    - `config`: an [`bodyprior.registration.NRDConfig`][]; `NRDConfig(constant_weights=True)` is
+      NRD CW.
     - `throw`: raise if the result is not `RESULTS.successful`: a round's linear solve hit
       `cg_max_steps` without reaching `cg_rtol` (`max_steps_reached`), or non-finite vertices
       (else inspect `sol.result`). Using all rounds of the schedule is not a failure (the rule is
@@ -806,10 +847,10 @@ def nrd(
     **Raises:** `ValueError` for inputs of the wrong shape/type, non-finite values, or a scan
     without valid points.
     """
+    template, prep = _template_and_prep(template, config)
     init = _check_inputs(init_vertices, template, config, batched=False)
     arrays = _scan_arrays(scan, batched=False)
     lm_v, lm_use = _landmark_map(template, scan.landmark_names)
-    prep = _prepare(template, config.n_patches)
     sol = _nrd_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
     return _check(sol, bool(throw), "NRD")
 
@@ -817,7 +858,7 @@ def nrd(
 def nrd_batch(
     init_vertices: Float[Array, "B V 3"],
     scans,
-    template: RegistrationTemplate,
+    template: RegistrationTemplate | NRDPrep,
     *,
     config: NRDConfig = NRDConfig(),
     throw: bool = True,
@@ -831,6 +872,7 @@ def nrd_batch(
     one per scan). With `throw=True` it raises once, naming the failed scans; with `False`, one
     failed scan leaves the others' results usable.
     """
+    template, prep = _template_and_prep(template, config)
     init = _check_inputs(init_vertices, template, config, batched=True)
     arrays = _scan_arrays(scans, batched=True)
     if arrays[0].shape[0] != init.shape[0]:
@@ -839,6 +881,5 @@ def nrd_batch(
             f"{arrays[0].shape[0]} scans."
         )
     lm_v, lm_use = _landmark_map(template, scans.landmark_names)
-    prep = _prepare(template, config.n_patches)
     sol = _nrd_batch_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
     return _check(sol, bool(throw), "NRD")

@@ -3,7 +3,9 @@
 Every S-SCAPE registration step (landmark alignment, S-SCAPE fitting, NRD, posture normalization,
 depth fitting) works on this one template. By default it is the 6,449-vertex decimated topology of
 the default body (the S-SCAPE template's vertex count; a vertex subset of the full mesh, so
-ground-truth meshes in the full topology restrict to it exactly with `vertices[..., vertex_map, :]`).
+ground-truth meshes in the full topology restrict to it exactly with
+`vertices[..., vertex_map, :]`). The template carries its rig ([`bodyprior.Rig`][]) and its
+[`bodyprior.Topology`][], so nothing downstream rebuilds them.
 
 The vertex joint regressor of the full body does not carry over to a vertex subset, so it is
 refitted here on the host with the asset builder's `joint_regressor` (sum-to-one weights over the
@@ -31,6 +33,9 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._rig import Rig
+from .._topology import Topology
+
 # Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape
 # does).
 _HAND_WORDS = ("Hand", "Thumb", "Finger")
@@ -42,7 +47,9 @@ class RegistrationTemplate(eqx.Module):
     **Fields** (V template vertices, F triangles, J joints, L landmarks):
 
     - `vertices`: rest template (the base MakeHuman body), shape `(V, 3)`, metres, Z up, facing -Y.
-    - `faces`: triangles, shape `(F, 3)`, int32, outward oriented.
+    - `topology`: the mesh's [`bodyprior.Topology`][] (faces, edges, one-rings), built and
+      validated once with the template; `faces` is `topology.faces`, `(F, 3)` int32, outward
+      oriented.
     - `vertex_map`: shape `(V,)`, index of each template vertex in the full default-body mesh.
     - `landmark_index`: template vertex of each named landmark, shape `(L,)`.
     - `landmark_error`: distance from each landmark's full-mesh vertex to the template vertex used
@@ -50,29 +57,41 @@ class RegistrationTemplate(eqx.Module):
       decimation).
     - `hand_mask`: shape `(V,)`, vertices skinned mostly (weight > 0.5) to hand/finger/thumb bones.
     - `head_mask`: shape `(V,)`, vertices skinned mostly to the head and neck bones.
-    - `skin_index`, `skin_weight`: top-k skin weights, shapes `(V, K)`; rows sum to one.
-    - `joint_regressor_indices`, `joint_regressor_weights`: sparse joint regressor over the template
-      vertices, shapes `(J, M)`; weights of each joint sum to one.
+    - `rig`: the [`bodyprior.Rig`][] over the template vertices: bone tree and names, top-k skin
+      weights (rows sum to one) and the sparse joint regressor refitted for these vertices
+      (weights of each joint sum to one).
     - `regressor_max_error`: held-out maximum joint error of that regressor over sampled adult
       bodies, metres (a float).
-    - `parents`, `joint_names`, `landmark_names`: static.
+    - `landmark_names`: static.
     """
 
     vertices: Float[Array, "V 3"]
-    faces: Int[Array, "F 3"]
+    topology: Topology
     vertex_map: Int[Array, " V"]
     landmark_index: Int[Array, " L"]
     landmark_error: Float[Array, " L"]
     hand_mask: Bool[Array, " V"]
     head_mask: Bool[Array, " V"]
-    skin_index: Int[Array, "V K"]
-    skin_weight: Float[Array, "V K"]
-    joint_regressor_indices: Int[Array, "J M"]
-    joint_regressor_weights: Float[Array, "J M"]
+    rig: Rig
     regressor_max_error: float = eqx.field(static=True)
-    parents: tuple[int, ...] = eqx.field(static=True)
-    joint_names: tuple[str, ...] = eqx.field(static=True)
     landmark_names: tuple[str, ...] = eqx.field(static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.topology, Topology):
+            raise ValueError(
+                f"`topology` must be a bodyprior.Topology (`Topology.from_faces(faces, V)`), got "
+                f"{type(self.topology).__name__}."
+            )
+        if not isinstance(self.rig, Rig):
+            raise ValueError(f"`rig` must be a bodyprior.Rig, got {type(self.rig).__name__}.")
+        n = self.vertices.shape[0]
+        for name, m in (("topology", self.topology.n_vertices), ("rig", self.rig.n_vertices)):
+            if m != n:
+                raise ValueError(f"`{name}` must have the template's {n} vertices, got {m}.")
+
+    @property
+    def faces(self) -> Int[Array, "F 3"]:
+        return self.topology.faces
 
     @property
     def n_vertices(self) -> int:
@@ -80,22 +99,29 @@ class RegistrationTemplate(eqx.Module):
 
     @property
     def n_joints(self) -> int:
-        return len(self.parents)
+        return self.rig.n_joints
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        return self.rig.parents
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.rig.joint_names
 
     def rig_kwargs(self) -> dict:
-        """The rig as keyword arguments of [`bodyprior.sscape.learn`][].
+        """Deprecated: pass `rig=template.rig` to [`bodyprior.sscape.learn`][] instead.
 
-        **Example:**
-        `bodyprior.sscape.learn(meshes, tmpl.faces, n_components=20, **tmpl.rig_kwargs())`.
+        **Returns:** `{"rig": self.rig}`, so `learn(..., **tmpl.rig_kwargs())` still works (with a
+        `DeprecationWarning`).
         """
-        return dict(
-            parents=self.parents,
-            joint_names=self.joint_names,
-            joint_regressor_indices=self.joint_regressor_indices,
-            joint_regressor_weights=self.joint_regressor_weights,
-            skin_indices=self.skin_index,
-            skin_weights=self.skin_weight,
+        warnings.warn(
+            "`RegistrationTemplate.rig_kwargs()` is deprecated: pass `rig=template.rig` to "
+            "`bodyprior.sscape.learn`.",
+            DeprecationWarning,
+            stacklevel=2,
         )
+        return {"rig": self.rig}
 
     def restrict(self, full_vertices: Float[Array, "*batch Vfull 3"]) -> Float[Array, "*batch V 3"]:
         """Restricts meshes in the full default-body topology to the template's vertices."""
@@ -130,8 +156,8 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
     lm_index = d.argmin(1).astype(np.int32)
     lm_error = d[np.arange(len(lm_index)), lm_index]
 
-    sidx = np.asarray(body.rig.skin_index)[vertex_map]
-    sw = np.asarray(body.rig.skin_weight, np.float64)[vertex_map]
+    sidx = np.asarray(body.rig.skin_indices)[vertex_map]
+    sw = np.asarray(body.rig.skin_weights, np.float64)[vertex_map]
     names = body.joint_names
 
     def mass(pred) -> np.ndarray:
@@ -147,7 +173,7 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
     verts = np.asarray(verts, np.float64)[:, vertex_map]
     joints = np.asarray(joints, np.float64)
     reg_i, reg_w, err = [], [], []
-    rest_joints = np.asarray(body.rig.head_template, np.float64)
+    rest_joints = np.asarray(body.bones.head_template, np.float64)
     for j in range(body.n_joints):
         i, w = joint_regressor(template, rest_joints[j], verts[:n_fit], joints[:n_fit, j], k=k)
         e = np.linalg.norm(np.einsum("k,skc->sc", w, verts[n_fit:, i]) - joints[n_fit:, j], axis=1)
@@ -157,19 +183,21 @@ def _build(rig: str, decimated: bool, n_fit: int, k: int) -> RegistrationTemplat
 
     return RegistrationTemplate(
         vertices=jnp.asarray(template, body.template.dtype),
-        faces=jnp.asarray(faces, jnp.int32),
+        topology=Topology.from_faces(np.asarray(faces, np.int32), len(vertex_map)),
         vertex_map=jnp.asarray(vertex_map),
         landmark_index=jnp.asarray(lm_index),
         landmark_error=jnp.asarray(lm_error, body.template.dtype),
         hand_mask=jnp.asarray(hand),
         head_mask=jnp.asarray(head),
-        skin_index=jnp.asarray(sidx, jnp.int32),
-        skin_weight=jnp.asarray(sw / sw.sum(1, keepdims=True), body.template.dtype),
-        joint_regressor_indices=jnp.asarray(np.stack(reg_i), jnp.int32),
-        joint_regressor_weights=jnp.asarray(np.stack(reg_w), body.template.dtype),
+        rig=Rig(
+            parents=body.parents,
+            joint_names=names,
+            skin_indices=jnp.asarray(sidx, jnp.int32),
+            skin_weights=jnp.asarray(sw / sw.sum(1, keepdims=True), body.template.dtype),
+            regressor_indices=jnp.asarray(np.stack(reg_i), jnp.int32),
+            regressor_weights=jnp.asarray(np.stack(reg_w), body.template.dtype),
+        ),
         regressor_max_error=max(err),
-        parents=body.parents,
-        joint_names=names,
         landmark_names=body.landmark_names,
     )
 
@@ -196,8 +224,9 @@ def registration_template(
       in that precision and the file holds both). `False`, or other arguments, fit the joint
       regressor here (tens of seconds).
 
-    **Returns:** a [`bodyprior.registration.RegistrationTemplate`][] (its `regressor_max_error` reports
-    the held-out joint error of the refitted regressor).
+    **Returns:** a [`bodyprior.registration.RegistrationTemplate`][] (its `regressor_max_error`
+    reports the held-out joint error of the refitted regressor). Templates are cached per argument
+    set (and `jax_enable_x64` mode) for the process, so every call returns the same object.
 
     **Raises:** `ValueError` for bad arguments or a corrupted precomputed file. A precomputed file
     built from other assets than the current ones is ignored with a warning (and the template fitted
@@ -227,19 +256,21 @@ _N_FIT, _REGRESSOR_SIZE = 300, 128
 _VARIANTS = tuple(
     (r, d, x) for r in ("cmu_mb", "game_engine") for d in (True, False) for x in (True, False)
 )
-_ARRAY_FIELDS = (
-    "vertices",
-    "faces",
-    "vertex_map",
-    "landmark_index",
-    "landmark_error",
-    "hand_mask",
-    "head_mask",
-    "skin_index",
-    "skin_weight",
-    "joint_regressor_indices",
-    "joint_regressor_weights",
-)
+# The file's arrays of each variant (the names of the template's fields before it held a Rig and a
+# Topology; the file format is unchanged) and how to read each from a template.
+_FILE_ARRAYS = {
+    "vertices": lambda t: t.vertices,
+    "faces": lambda t: t.faces,
+    "vertex_map": lambda t: t.vertex_map,
+    "landmark_index": lambda t: t.landmark_index,
+    "landmark_error": lambda t: t.landmark_error,
+    "hand_mask": lambda t: t.hand_mask,
+    "head_mask": lambda t: t.head_mask,
+    "skin_index": lambda t: t.rig.skin_indices,
+    "skin_weight": lambda t: t.rig.skin_weights,
+    "joint_regressor_indices": lambda t: t.rig.regressor_indices,
+    "joint_regressor_weights": lambda t: t.rig.regressor_weights,
+}
 _REBUILD = "rebuild it with `python -m bodyprior.assets.build --template`"
 
 
@@ -287,8 +318,8 @@ def write_precomputed(path: str | None = None, log=print) -> dict:
         with jax.enable_x64(x64):
             tmpl = _build(rig, dec, _N_FIT, _REGRESSOR_SIZE)
         name = _variant(rig, dec, x64)
-        for f in _ARRAY_FIELDS:
-            arrays[f"{name}.{f}"] = np.asarray(getattr(tmpl, f))
+        for f, get in _FILE_ARRAYS.items():
+            arrays[f"{name}.{f}"] = np.asarray(get(tmpl))
         variants[name] = {
             "rig": rig,
             "decimated": dec,
@@ -364,10 +395,23 @@ def _load_precomputed(rig: str, decimated: bool, x64: bool) -> RegistrationTempl
     arrays, meta = read
     name = _variant(rig, decimated, x64)
     info = meta["variants"][name]
+    a = {f: jnp.asarray(arrays[f"{name}.{f}"]) for f in _FILE_ARRAYS}
     return RegistrationTemplate(
-        **{f: jnp.asarray(arrays[f"{name}.{f}"]) for f in _ARRAY_FIELDS},
+        vertices=a["vertices"],
+        topology=Topology.from_faces(np.asarray(a["faces"]), a["vertices"].shape[0]),
+        vertex_map=a["vertex_map"],
+        landmark_index=a["landmark_index"],
+        landmark_error=a["landmark_error"],
+        hand_mask=a["hand_mask"],
+        head_mask=a["head_mask"],
+        rig=Rig(
+            parents=tuple(int(p) for p in info["parents"]),
+            joint_names=tuple(str(n) for n in info["joint_names"]),
+            skin_indices=a["skin_index"],
+            skin_weights=a["skin_weight"],
+            regressor_indices=a["joint_regressor_indices"],
+            regressor_weights=a["joint_regressor_weights"],
+        ),
         regressor_max_error=float(info["regressor_max_error"]),
-        parents=tuple(int(p) for p in info["parents"]),
-        joint_names=tuple(str(n) for n in info["joint_names"]),
         landmark_names=tuple(str(n) for n in info["landmark_names"]),
     )

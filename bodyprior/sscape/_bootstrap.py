@@ -119,8 +119,8 @@ class GateResult(NamedTuple):
 def body_parts(template: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
     """Body-part label of every template vertex, `(V,)` int (`-1` = hands, not judged), and the
     part names (vertices grouped by their dominant skinning bone)."""
-    sw = np.asarray(template.skin_weight)
-    si = np.asarray(template.skin_index)
+    sw = np.asarray(template.rig.skin_weights)
+    si = np.asarray(template.rig.skin_indices)
     bone = si[np.arange(si.shape[0]), sw.argmax(1)]
     names = template.joint_names
     bone_part = np.full(len(names), -1)
@@ -254,7 +254,7 @@ def register_sscape_nrd(
     """
     import jax
 
-    from ..registration._nrd import NRDConfig, nrd
+    from ..registration._nrd import NRDConfig, nrd, prepare_nrd
     from ._fit import FitConfig, fit_sscape_batch
 
     fit_config = FitConfig() if fit_config is None else fit_config
@@ -264,9 +264,10 @@ def register_sscape_nrd(
     ).value
     n = scans.points.shape[0]
     out = []
+    prep = prepare_nrd(template, n_patches=nrd_config.n_patches)  # once for all scans
     for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
-        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, template, config=nrd_config, throw=False)
+        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, prep, config=nrd_config, throw=False)
         out.append(np.asarray(r.value.vertices))
     return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
 
@@ -293,7 +294,7 @@ class BootstrapResult(NamedTuple):
 
 def _learn_from(meshes, tmpl, n_components):
     k = int(min(n_components, meshes.shape[0] - 1))
-    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, **tmpl.rig_kwargs())
+    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
 
 
 def bootstrap(

@@ -847,7 +847,7 @@ def fit_sscape(
 
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on the template's topology (e.g.
       `learn(template.restrict(pop.vertices), template.faces, n_components=K,
-      **template.rig_kwargs())`).
+      rig=template.rig)`).
     - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks must be
       named in `template.landmark_names`.
     - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand

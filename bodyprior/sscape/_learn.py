@@ -8,6 +8,7 @@ the humanshape evaluation code.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -19,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._kinematics import Similarity, umeyama
+from .._rig import Rig
 from .._stats import pca_host as _pca_host
 from .._validate import check_array
 from ._model import SScapeModel
@@ -147,6 +149,16 @@ def _choose_components(ratio: np.ndarray, n_components, explained_variance) -> i
     return r
 
 
+_LEGACY_RIG = {  # learn()'s former rig keywords -> Rig fields
+    "parents": "parents",
+    "joint_names": "joint_names",
+    "joint_regressor_indices": "regressor_indices",
+    "joint_regressor_weights": "regressor_weights",
+    "skin_indices": "skin_indices",
+    "skin_weights": "skin_weights",
+}
+
+
 def learn(
     meshes: Float[Array, "N V 3"],
     faces,
@@ -154,15 +166,11 @@ def learn(
     n_components: int | None = None,
     explained_variance: float | None = None,
     template: SScapeModel | None = None,
-    parents: Sequence[int] | None = None,
-    joint_names: Sequence[str] | None = None,
-    joint_regressor_indices=None,
-    joint_regressor_weights=None,
-    skin_indices=None,
-    skin_weights=None,
+    rig: Rig | None = None,
     align: bool = True,
     scale: bool = False,
     n_iter: int = 100,
+    **legacy_rig,
 ) -> SScapeModel:
     """Learns an S-SCAPE shape space from meshes in vertex correspondence.
 
@@ -171,9 +179,8 @@ def learn(
     on the host; `stddev = singular values / sqrt(N - 1)` (unbiased; humanshape's `evalues` use
     `1/N`). With a `template`, the aligned data are moved rigidly so that their mean best fits the
     template's mean (humanshape `createModel.m` aligns the new mean to the old template), and the
-    template's rig is reused. Without a template, the rig comes from the keyword arguments; if none
-    is given at all, a single root joint at the vertex centroid with every vertex bound to it is
-    used.
+    template's rig is reused. Without a template, the rig is `rig`; if none is given, a single root
+    joint at the vertex centroid with every vertex bound to it is used.
 
     **Arguments:**
 
@@ -182,13 +189,15 @@ def learn(
     - `n_components`: number of components to keep (at most `N - 1`), or
     - `explained_variance`: keep the fewest components whose cumulative explained variance ratio
       reaches this fraction in `(0, 1]`. Neither: keep all `min(N - 1, 3V)` components.
-    - `template`: optional model whose rig (`parents`, `joint_names`, joint regressor, skin weights)
-      and frame are reused.
-    - `parents`, `joint_names`, `joint_regressor_indices`, `joint_regressor_weights`,
-      `skin_indices`, `skin_weights`: an explicit rig (all or none), see
-      [`bodyprior.sscape.SScapeModel`][].
+    - `template`: optional model whose rig and frame are reused.
+    - `rig`: a [`bodyprior.Rig`][] over the `V` vertices, e.g. `body.rig` of the default body or
+      `template.rig` of the registration template.
     - `align`: run Procrustes alignment first (rigid unless `scale=True`).
     - `n_iter`: maximum number of GPA rounds.
+
+    The former rig keywords (`parents`, `joint_names`, `joint_regressor_indices`,
+    `joint_regressor_weights`, `skin_indices`, `skin_weights`, all or none) still work, with a
+    `DeprecationWarning`.
 
     **Returns:** an [`bodyprior.sscape.SScapeModel`][] whose `explained_variance` leaf holds each
     kept component's fraction of the total training variance.
@@ -199,39 +208,50 @@ def learn(
     n, v = dims["N"], dims["V"]
     if n < 2:
         raise ValueError(f"`meshes` must hold at least 2 meshes, got {n}.")
-    rig_args = dict(
-        parents=parents,
-        joint_names=joint_names,
-        joint_regressor_indices=joint_regressor_indices,
-        joint_regressor_weights=joint_regressor_weights,
-        skin_indices=skin_indices,
-        skin_weights=skin_weights,
-    )
-    given = [k for k, a in rig_args.items() if a is not None]
+    unknown = sorted(set(legacy_rig) - set(_LEGACY_RIG))
+    if unknown:
+        raise TypeError(f"learn() got unexpected keyword arguments {unknown}.")
+    given = [k for k, a in legacy_rig.items() if a is not None]
+    if given:
+        if len(given) != len(_LEGACY_RIG):
+            missing = sorted(set(_LEGACY_RIG) - set(given))
+            raise ValueError(
+                f"An explicit rig needs all of {sorted(_LEGACY_RIG)}; missing {missing}."
+            )
+        if rig is not None:
+            raise ValueError(
+                f"Pass either `rig` or the former rig keywords, not both (got {given})."
+            )
+        warnings.warn(
+            f"learn()'s rig keywords {sorted(_LEGACY_RIG)} are deprecated: pass "
+            "`rig=bodyprior.Rig(...)` (e.g. `rig=body.rig` or `rig=template.rig`).",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        rig = Rig(**{_LEGACY_RIG[k]: a for k, a in legacy_rig.items()})
+    if rig is not None and not isinstance(rig, Rig):
+        raise ValueError(f"`rig` must be a bodyprior.Rig, got {type(rig).__name__}.")
     if template is not None:
         if not isinstance(template, SScapeModel):
             raise ValueError(f"`template` must be an SScapeModel, got {type(template).__name__}.")
-        if given:
-            raise ValueError(f"Pass either `template` or an explicit rig, not both (got {given}).")
+        if rig is not None:
+            raise ValueError("Pass either `template` or an explicit rig, not both.")
         if template.n_vertices != v:
             raise ValueError(
                 f"`template` has {template.n_vertices} vertices but `meshes` have {v}."
             )
-        rig = {k: getattr(template, k) for k in rig_args}
-    elif given:
-        if len(given) != len(rig_args):
-            missing = sorted(set(rig_args) - set(given))
-            raise ValueError(f"An explicit rig needs all of {sorted(rig_args)}; missing {missing}.")
-        rig = rig_args
-    else:
-        rig = dict(
+        rig = template.rig
+    elif rig is None:
+        rig = Rig(
             parents=(-1,),
             joint_names=("root",),
-            joint_regressor_indices=np.arange(v, dtype=np.int32)[None],
-            joint_regressor_weights=np.full((1, v), 1.0 / v),
+            regressor_indices=np.arange(v, dtype=np.int32)[None],
+            regressor_weights=np.full((1, v), 1.0 / v),
             skin_indices=np.zeros((v, 1), np.int32),
             skin_weights=np.ones((v, 1)),
         )
+    if rig.n_vertices != v:
+        raise ValueError(f"`rig` skins {rig.n_vertices} vertices but `meshes` have {v}.")
 
     x = jnp.asarray(meshes)
     if align:
@@ -255,7 +275,7 @@ def learn(
         stddev=jnp.asarray(s[:k] / np.sqrt(n - 1), dtype=dtype),
         explained_variance=jnp.asarray(ratio[:k], dtype=dtype),
         faces=faces,
-        **rig,
+        rig=rig,
     )
 
 

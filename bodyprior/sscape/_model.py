@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._kinematics import Similarity, forward_kinematics, validate_parents
+from .._kinematics import Similarity, forward_kinematics
+from .._rig import Rig
 from .._rotations import euler_to_matrix, rotation_to_matrix
 from .._skinning import lbs
 from .._validate import check_array, is_tracer
@@ -38,7 +39,7 @@ def _int_leaf(x):
 class SScapeModel(eqx.Module):
     """An S-SCAPE body model: a PCA shape space over a rigged template mesh.
 
-    Arrays are leaves; the kinematic tree (`parents`) and `joint_names` are static.
+    Arrays are leaves; the kinematic tree and joint names (in `rig`) are static.
 
     **Fields:**
 
@@ -48,11 +49,12 @@ class SScapeModel(eqx.Module):
     - `explained_variance`: fraction of the total training variance explained by each component,
       shape `(K,)` (sums to at most one; less after truncation).
     - `faces`: triangles, shape `(F, 3)`, int32, 0-based, outward oriented.
-    - `joint_regressor_indices`, `joint_regressor_weights`: sparse joint regressor, shapes `(J, M)`;
-      joint `j` sits at `sum_m w[j, m] * vertices[idx[j, m]]` (padding entries have weight 0).
-    - `skin_indices`, `skin_weights`: sparse skinning weights, shapes `(V, Kw)`; rows sum to one.
-    - `parents`: static tuple of parent indices, `parents[0] == -1`, parents before children.
-    - `joint_names`: static tuple of joint names.
+    - `rig`: the [`bodyprior.Rig`][] over the `V` vertices: bone tree (`parents[0] == -1`), joint
+      names, top-k skin weights (rows sum to one) and the sparse joint regressor (joint `j` sits at
+      `sum_m w[j, m] * vertices[idx[j, m]]`).
+
+    The rig's parts are also readable under their former field names (`parents`, `joint_names`,
+    `skin_indices`, `skin_weights`, `joint_regressor_indices`, `joint_regressor_weights`).
     """
 
     mean: Float[Array, "V 3"] = eqx.field(converter=_float_leaf)
@@ -60,14 +62,7 @@ class SScapeModel(eqx.Module):
     stddev: Float[Array, " K"] = eqx.field(converter=_float_leaf)
     explained_variance: Float[Array, " K"] = eqx.field(converter=_float_leaf)
     faces: Int[Array, "F 3"] = eqx.field(converter=_int_leaf)
-    joint_regressor_indices: Int[Array, "J M"] = eqx.field(converter=_int_leaf)
-    joint_regressor_weights: Float[Array, "J M"] = eqx.field(converter=_float_leaf)
-    skin_indices: Int[Array, "V Kw"] = eqx.field(converter=_int_leaf)
-    skin_weights: Float[Array, "V Kw"] = eqx.field(converter=_float_leaf)
-    parents: tuple[int, ...] = eqx.field(static=True, converter=lambda p: tuple(int(i) for i in p))
-    joint_names: tuple[str, ...] = eqx.field(
-        static=True, converter=lambda n: tuple(str(s) for s in n)
-    )
+    rig: Rig
 
     def __check_init__(self):
         dims: dict[str, int] = {}
@@ -76,44 +71,45 @@ class SScapeModel(eqx.Module):
         check_array(self.stddev, "stddev", ("K",), dims=dims, finite=False)
         check_array(self.explained_variance, "explained_variance", ("K",), dims=dims, finite=False)
         check_array(self.faces, "faces", (None, 3), integer=True)
-        check_array(
-            self.joint_regressor_indices,
-            "joint_regressor_indices",
-            ("J", "M"),
-            dims=dims,
-            integer=True,
-        )
-        check_array(
-            self.joint_regressor_weights,
-            "joint_regressor_weights",
-            ("J", "M"),
-            dims=dims,
-            finite=False,
-        )
-        check_array(self.skin_indices, "skin_indices", ("V", "Kw"), dims=dims, integer=True)
-        check_array(self.skin_weights, "skin_weights", ("V", "Kw"), dims=dims, finite=False)
-        n_joints = dims["J"]
-        if len(self.parents) != n_joints:
-            raise ValueError(
-                f"`parents` must have {n_joints} entries (one per joint), got {len(self.parents)}."
-            )
-        if len(self.joint_names) != n_joints:
-            raise ValueError(
-                f"`joint_names` must have {n_joints} entries (one per joint), got "
-                f"{len(self.joint_names)}."
-            )
-        validate_parents(self.parents)
+        if not isinstance(self.rig, Rig):
+            raise ValueError(f"`rig` must be a bodyprior.Rig, got {type(self.rig).__name__}.")
         n_vertices = dims["V"]
-        for name, arr, hi in (
-            ("faces", self.faces, n_vertices),
-            ("joint_regressor_indices", self.joint_regressor_indices, n_vertices),
-            ("skin_indices", self.skin_indices, n_joints),
-        ):
-            if not is_tracer(arr) and arr.size and (int(arr.min()) < 0 or int(arr.max()) >= hi):
+        if self.rig.n_vertices != n_vertices:
+            raise ValueError(
+                f"`rig` must skin the model's {n_vertices} vertices, got skin weights for "
+                f"{self.rig.n_vertices}."
+            )
+        if not is_tracer(self.faces) and self.faces.size:
+            f = np.asarray(self.faces)  # on the host: no device program per check
+            if int(f.min()) < 0 or int(f.max()) >= n_vertices:
                 raise ValueError(
-                    f"`{name}` must hold indices in [0, {hi - 1}], got [{int(arr.min())}, "
-                    f"{int(arr.max())}]."
+                    f"`faces` must hold indices in [0, {n_vertices - 1}], got [{int(f.min())}, "
+                    f"{int(f.max())}]."
                 )
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        return self.rig.parents
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.rig.joint_names
+
+    @property
+    def skin_indices(self) -> Int[Array, "V Kw"]:
+        return self.rig.skin_indices
+
+    @property
+    def skin_weights(self) -> Float[Array, "V Kw"]:
+        return self.rig.skin_weights
+
+    @property
+    def joint_regressor_indices(self) -> Int[Array, "J M"]:
+        return self.rig.regressor_indices
+
+    @property
+    def joint_regressor_weights(self) -> Float[Array, "J M"]:
+        return self.rig.regressor_weights
 
     @property
     def n_vertices(self) -> int:
@@ -125,7 +121,7 @@ class SScapeModel(eqx.Module):
 
     @property
     def n_joints(self) -> int:
-        return len(self.parents)
+        return self.rig.n_joints
 
     def shape_vertices(self, shape_coeffs) -> Float[Array, "V 3"]:
         """Method form of [`bodyprior.sscape.shape_vertices`][]."""
@@ -197,8 +193,7 @@ def rest_joints(model: SScapeModel, vertices: Float[Array, "V 3"]) -> Float[Arra
     """
     _check_model(model)
     check_array(vertices, "vertices", (model.n_vertices, 3))
-    gathered = jnp.asarray(vertices)[model.joint_regressor_indices]  # (J, M, 3)
-    return jnp.einsum("jm,jmd->jd", model.joint_regressor_weights, gathered)
+    return model.rig.regress_joints(vertices)
 
 
 def _pose_to_matrices(pose, pose_rep: str, n_joints: int):
@@ -273,14 +268,13 @@ def evaluate(
         model.parents, rotations, joints, root_translation
     )
     if subset is None:
-        posed = lbs(rest, model.skin_indices, model.skin_weights, transforms)
+        posed = model.rig.skin(rest, transforms)
     else:
         subset = jnp.asarray(check_array(subset, "subset", ("S",)))
         if not jnp.issubdtype(subset.dtype, jnp.integer):
             raise ValueError(f"`subset` must hold integer vertex indices, got {subset.dtype}.")
-        posed = lbs(
-            rest[subset], model.skin_indices[subset], model.skin_weights[subset], transforms
-        )
+        rig = model.rig
+        posed = lbs(rest[subset], rig.skin_indices[subset], rig.skin_weights[subset], transforms)
     if transform is not None:
         posed = transform.apply(posed)
         posed_joints = transform.apply(posed_joints)

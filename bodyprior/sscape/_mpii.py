@@ -26,6 +26,7 @@ import numpy as np
 import scipy.io
 
 from .._kinematics import Similarity
+from .._rig import Rig
 from .._rotations import axis_angle_to_matrix
 from .._validate import check_array
 from ._model import SScapeModel
@@ -391,12 +392,14 @@ def load_mpii_humanshape(
         stddev=stddev,
         explained_variance=explained,
         faces=dat["faces"],
-        joint_regressor_indices=reg_idx,
-        joint_regressor_weights=reg_w,
-        skin_indices=skin_idx,
-        skin_weights=skin_w,
-        parents=parents,
-        joint_names=names,
+        rig=Rig(
+            parents=parents,
+            joint_names=names,
+            skin_indices=skin_idx,
+            skin_weights=skin_w,
+            regressor_indices=reg_idx,
+            regressor_weights=reg_w,
+        ),
     )
     if not return_rig:
         return model

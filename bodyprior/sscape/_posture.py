@@ -49,24 +49,29 @@ result is translated to `Y`'s centroid.
 
 **Solver** *(choice)*: both normal-equation matrices `L^T L + omega^2 P^T P` depend only on the
 template (topology, the fixed cotangent weights of the rest template, the anchor set), so each is
-factorised **once per template on the host** with SuperLU (`scipy.sparse.linalg.splu`, float64)
-and every mesh, and every coordinate, is one pair of triangular solves (milliseconds for 6,449
-vertices). A Krylov solver (lineax CG) on this bi-Laplacian system would need thousands of
-iterations per right-hand side (its condition number grows like `V^2`) for the same answer. The
-per-mesh parts (forward kinematics, inverse skinning, normals, frames, Laplacian coordinates) are
-jitted JAX kernels for one mesh, `vmap`-ed for batches.
+factorised **on the host** with SuperLU (`scipy.sparse.linalg.splu`, float64): the NH system once,
+when [`bodyprior.sscape.posture_rig`][] builds the [`bodyprior.sscape.PostureRig`][] that carries
+it (pass the rig instead of the template to reuse it), the WSX system per call (its anchor vertex
+depends on the reference; ~25 ms). Every mesh, and every coordinate, is then one pair of
+triangular solves (milliseconds for 6,449 vertices). A Krylov solver (lineax CG) on this
+bi-Laplacian system would need thousands of iterations per right-hand side (its condition number
+grows like `V^2`) for the same answer. The per-mesh parts (forward kinematics, inverse skinning,
+normals, frames, Laplacian coordinates) are jitted JAX kernels for one mesh, `vmap`-ed for batches.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._geometry import cotangent_weights, laplacian_apply, laplacian_sparse, vertex_normals
 from .._kinematics import world_transforms
+from .._rig import Rig
 from .._rotations import rotation_to_matrix
 from .._topology import Topology
 from .._validate import check_array
@@ -93,28 +98,45 @@ __all__ = [
 class PostureRig(eqx.Module):
     """What posture normalization needs of a template, precomputed once (arrays are leaves).
 
-    Built by [`bodyprior.sscape.posture_rig`][] from a `RegistrationTemplate` or an `SScapeModel`.
+    Built by [`bodyprior.sscape.posture_rig`][] from a `RegistrationTemplate` or an `SScapeModel`,
+    and accepted in place of the template by every function here, so that repeated calls reuse
+    it.
 
     **Fields:** `rest` `(V, 3)` rest template (float64, defines the fixed cotangent weights),
-    `faces` `(F, 3)`, `topology`, `weights` `(E,)` Laplacian edge weights, `skin_index`,
-    `skin_weight` `(V, K)`, `reg_index`, `reg_weight` `(J, M)` joint regressor, `neighbor` `(V,)`
-    designated neighbour of each vertex (WSX frames), static `parents`.
+    `topology` (the template's [`bodyprior.Topology`][]; `faces` is `topology.faces`), `weights`
+    `(E,)` Laplacian edge weights, `rig` the template's [`bodyprior.Rig`][] in float64 (skin
+    weights, joint regressor, bone tree), `neighbor` `(V,)` designated neighbour of each vertex
+    (WSX frames); static `nh_solver`, the factorised NH system
+    ([`bodyprior.sscape.LaplacianSolver`][]) for the soft-anchor parameters `anchor_threshold`,
+    `anchor_weight` (static), or `None`. The jitted kernels never see `nh_solver`, so rigs built
+    separately for one template share their compiled programs.
     """
 
     rest: Float[Array, "V 3"]
-    faces: Array
     topology: Topology
     weights: Float[Array, " E"]
-    skin_index: Array
-    skin_weight: Array
-    reg_index: Array
-    reg_weight: Array
-    neighbor: Array
-    parents: tuple[int, ...] = eqx.field(static=True)
+    rig: Rig
+    neighbor: Int[Array, " V"]
+    anchor_threshold: float = eqx.field(static=True, default=0.8)
+    anchor_weight: float = eqx.field(static=True, default=10.0)
+    nh_solver: LaplacianSolver | None = eqx.field(static=True, default=None)
 
     @property
     def n_vertices(self) -> int:
         return self.rest.shape[0]
+
+    @property
+    def faces(self) -> Int[Array, "F 3"]:
+        return self.topology.faces
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        return self.rig.parents
+
+    def _traced(self) -> PostureRig:
+        """The rig without its host-side solver and anchor parameters (the kernels use neither):
+        what the jitted kernels take, so that their compiled programs are not keyed by them."""
+        return dataclasses.replace(self, nh_solver=None, anchor_threshold=0.0, anchor_weight=0.0)
 
 
 class LaplacianSolver:
@@ -175,74 +197,93 @@ class LaplacianSolver:
         return x[0] if single else x
 
 
-def posture_rig(template, *, weights: str = "cotangent") -> PostureRig:
-    """Posture-normalization rig of a template (cached per template object and weight choice).
+def _nh_anchor_weight(rig: PostureRig, threshold: float, weight: float) -> np.ndarray:
+    """NH soft-anchor weights: `weight` on vertices whose largest skin weight reaches
+    `threshold`, 0 elsewhere."""
+    return np.where(np.asarray(rig.rig.skin_weights).max(1) >= threshold, float(weight), 0.0)
+
+
+def _check_anchor_parameters(anchor_threshold, anchor_weight) -> tuple[float, float]:
+    if not 0.0 < float(anchor_threshold) <= 1.0:
+        raise ValueError(f"`anchor_threshold` must lie in (0, 1], got {anchor_threshold!r}.")
+    if not float(anchor_weight) > 0:
+        raise ValueError(f"`anchor_weight` must be positive, got {anchor_weight!r}.")
+    return float(anchor_threshold), float(anchor_weight)
+
+
+def posture_rig(
+    template,
+    *,
+    weights: str = "cotangent",
+    anchor_threshold: float = 0.8,
+    anchor_weight: float = 10.0,
+    factorize: bool = True,
+) -> PostureRig:
+    """Posture-normalization rig of a template, built once on the host (pass it in place of the
+    template to the normalization functions to reuse it).
 
     **Arguments:**
 
-    - `template`: a [`bodyprior.registration.RegistrationTemplate`][] or
-      [`bodyprior.sscape.SScapeModel`][] (its mean is the rest mesh).
+    - `template`: a [`bodyprior.registration.RegistrationTemplate`][] (its topology and rig are
+      used as they are) or [`bodyprior.sscape.SScapeModel`][] (its mean is the rest mesh; its
+      topology is built from `faces` here).
     - `weights`: `"cotangent"` (cotangent weights of the rest template, default) or `"uniform"`.
       They are computed once and used for every mesh, so `L` is one fixed linear operator.
+    - `anchor_threshold`, `anchor_weight`: the NH soft anchors the factorised NH system is built
+      for (as in [`bodyprior.sscape.normalize_posture_nh_batch`][]; calls with other values
+      factorise their own system).
+    - `factorize`: factorise the NH system now (about 0.1 s at 6,449 vertices); `False` leaves
+      `nh_solver` `None` (e.g. for WSX only, whose system depends on the data's anchor vertex and
+      is factorised per call, about 25 ms).
     """
     if weights not in ("cotangent", "uniform"):
         raise ValueError(f"`weights` must be 'cotangent' or 'uniform', got {weights!r}.")
-    key = (id(template), weights)
-    hit = _RIG_CACHE.get(key)
-    if hit is not None and hit[0] is template:
-        return hit[1]
+    threshold, weight = _check_anchor_parameters(anchor_threshold, anchor_weight)
     if isinstance(template, RegistrationTemplate):
-        rest, skin_i, skin_w = template.vertices, template.skin_index, template.skin_weight
+        rest, rig, topo = template.vertices, template.rig, template.topology
     elif isinstance(template, SScapeModel):
-        rest, skin_i, skin_w = template.mean, template.skin_indices, template.skin_weights
+        rest, rig, topo = template.mean, template.rig, None
     else:
         raise ValueError(
             "`template` must be a RegistrationTemplate or an SScapeModel, got "
             f"{type(template).__name__}."
         )
     rest = np.asarray(rest, np.float64)
-    faces = np.asarray(template.faces, np.int32)
-    topo = Topology.from_faces(faces, rest.shape[0])
+    if topo is None:
+        topo = Topology.from_faces(np.asarray(template.faces, np.int32), rest.shape[0])
     if weights == "cotangent":
         w = jnp.asarray(cotangent_weights(rest, topo), jnp.float64)
     else:
         w = jnp.ones(topo.n_edges, jnp.float64)
-    rig = PostureRig(
+    out = PostureRig(
         rest=jnp.asarray(rest),
-        faces=jnp.asarray(faces),
         topology=topo,
         weights=w,
-        skin_index=jnp.asarray(skin_i, jnp.int32),
-        skin_weight=jnp.asarray(skin_w, jnp.float64),
-        reg_index=jnp.asarray(template.joint_regressor_indices, jnp.int32),
-        reg_weight=jnp.asarray(template.joint_regressor_weights, jnp.float64),
+        rig=rig.astype(jnp.float64),
         neighbor=jnp.asarray(np.asarray(topo.one_ring)[:, 0], jnp.int32),
-        parents=tuple(template.parents),
+        anchor_threshold=threshold,
+        anchor_weight=weight,
     )
-    _RIG_CACHE[key] = (template, rig)
-    return rig
+    if factorize:
+        solver = LaplacianSolver(out, _nh_anchor_weight(out, threshold, weight), "laplacian")
+        out = dataclasses.replace(out, nh_solver=solver)
+    return out
 
 
-_RIG_CACHE: dict = {}
-_SOLVER_CACHE: dict = {}
+def _nh_solver(rig: PostureRig, threshold: float, weight: float) -> LaplacianSolver:
+    """The rig's own NH solver if it was built for these anchor parameters, else a new one."""
+    if rig.nh_solver is not None and (rig.anchor_threshold, rig.anchor_weight) == (
+        threshold,
+        weight,
+    ):
+        return rig.nh_solver
+    return LaplacianSolver(rig, _nh_anchor_weight(rig, threshold, weight), "laplacian")
 
 
-def _solver(
-    rig: PostureRig, kind: str, threshold: float = 0.0, weight: float = 1.0, anchor: int = -1
-) -> LaplacianSolver:
-    key = (id(rig), kind, float(threshold), float(weight), int(anchor))
-    hit = _SOLVER_CACHE.get(key)
-    if hit is not None and hit[0] is rig:
-        return hit[1]
-    if kind == "nh":
-        w = np.where(np.asarray(rig.skin_weight).max(1) >= threshold, float(weight), 0.0)
-        s = LaplacianSolver(rig, w, "laplacian")
-    else:
-        w = np.zeros(rig.n_vertices)
-        w[anchor] = 1.0
-        s = LaplacianSolver(rig, w, "edges")
-    _SOLVER_CACHE[key] = (rig, s)
-    return s
+def _wsx_solver(rig: PostureRig, anchor: int) -> LaplacianSolver:
+    w = np.zeros(rig.n_vertices)
+    w[anchor] = 1.0
+    return LaplacianSolver(rig, w, "edges")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -250,13 +291,13 @@ def _solver(
 
 
 def _regress(rig: PostureRig, x):
-    return jnp.einsum("jm,jmd->jd", rig.reg_weight, x[rig.reg_index])
+    return rig.rig.regress_joints(x)
 
 
 def _blend(rig: PostureRig, a):
     """Blended 3x4 skinning transforms `M_i = sum_k w_ik A_{j_ik}`, shape `(V, 3, 4)`."""
     a12 = a[:, :3, :].reshape(a.shape[0], 12)
-    m = jnp.einsum("vk,vkc->vc", rig.skin_weight, a12[rig.skin_index])
+    m = jnp.einsum("vk,vkc->vc", rig.rig.skin_weights, a12[rig.rig.skin_indices])
     return m.reshape(-1, 3, 4)
 
 
@@ -367,12 +408,12 @@ def unpose_lbs(
 
     **Returns:** the un-posed mesh `(V, 3)`, float64.
     """
-    rig = template if isinstance(template, PostureRig) else posture_rig(template)
+    rig = template if isinstance(template, PostureRig) else posture_rig(template, factorize=False)
     x, _ = _check_meshes(jnp.asarray(vertices)[None], rig, "vertices")
     nj = len(rig.parents)
     check_array(pose, "pose", (nj, 3) if np.ndim(pose) == 2 else (nj, 3, 3))
     r = _pose_matrices(jnp.asarray(pose, jnp.float64)[None], len(rig.parents))
-    u, _ = _nh_prepare(rig, x, r, int(n_joint_iter))
+    u, _ = _nh_prepare(rig._traced(), x, r, int(n_joint_iter))
     return u[0]
 
 
@@ -410,17 +451,18 @@ def normalize_posture_nh_batch(
 
     **Returns:** normalized meshes `(N, V, 3)`, float64 NumPy, in the model's rest frame.
     """
-    rig = template if isinstance(template, PostureRig) else posture_rig(template, weights=weights)
+    threshold, weight = _check_anchor_parameters(anchor_threshold, anchor_weight)
+    if isinstance(template, PostureRig):
+        rig = template
+    else:
+        rig = posture_rig(template, weights=weights, anchor_threshold=threshold,
+                          anchor_weight=weight, factorize=bool(laplacian))  # fmt: skip
     x, n = _check_meshes(meshes, rig, "meshes")
     j = len(rig.parents)
     if np.ndim(poses) == 3:
         check_array(poses, "poses", (n, j, 3))
     else:
         check_array(poses, "poses", (n, j, 3, 3))
-    if not 0.0 < float(anchor_threshold) <= 1.0:
-        raise ValueError(f"`anchor_threshold` must lie in (0, 1], got {anchor_threshold!r}.")
-    if not float(anchor_weight) > 0:
-        raise ValueError(f"`anchor_weight` must be positive, got {anchor_weight!r}.")
     scale = np.ones(n)
     if similarities is not None:
         rot = jnp.asarray(similarities.rotation, jnp.float64)
@@ -431,12 +473,12 @@ def normalize_posture_nh_batch(
         x = jnp.einsum("nvb,nba->nva", x - tr[:, None], rot) / scale[:, None, None]
     r = _pose_matrices(jnp.asarray(poses, jnp.float64), j)
     if rest_joints is None:
-        u, b = _nh_prepare(rig, x, r, int(n_joint_iter))
+        u, b = _nh_prepare(rig._traced(), x, r, int(n_joint_iter))
     else:
         check_array(rest_joints, "rest_joints", (n, j, 3))
-        u, b = _nh_prepare_known(rig, x, r, jnp.asarray(rest_joints, jnp.float64))
+        u, b = _nh_prepare_known(rig._traced(), x, r, jnp.asarray(rest_joints, jnp.float64))
     if laplacian:
-        solver = _solver(rig, "nh", float(anchor_threshold), float(anchor_weight))
+        solver = _nh_solver(rig, threshold, weight)
         out = solver.solve(np.asarray(b), np.asarray(u))
     else:
         out = np.asarray(u)
@@ -481,7 +523,10 @@ def normalize_posture_wsx_batch(
     **Returns:** normalized meshes `(N, V, 3)`, float64 NumPy, in the reference's frame, centred at
     the reference's centroid.
     """
-    rig = template if isinstance(template, PostureRig) else posture_rig(template, weights=weights)
+    if isinstance(template, PostureRig):
+        rig = template
+    else:
+        rig = posture_rig(template, weights=weights, factorize=False)
     x, n = _check_meshes(meshes, rig, "meshes")
     if isinstance(n_iter, bool) or not isinstance(n_iter, (int, np.integer)) or n_iter < 1:
         raise ValueError(f"`n_iter` must be a positive int, got {n_iter!r}.")
@@ -493,7 +538,8 @@ def normalize_posture_wsx_batch(
     else:
         check_array(reference, "reference", (rig.n_vertices, 3))
         y = np.asarray(reference, np.float64)
-    solver = _solver(rig, "wsx", anchor=_anchor_vertex(y))
+    solver = _wsx_solver(rig, _anchor_vertex(y))
+    rig = rig._traced()
     frames_x = _wsx_frames(rig, x)
     anchors = np.broadcast_to(y, (n, *y.shape))
     cur = jnp.broadcast_to(jnp.asarray(y), (n, *y.shape))
@@ -549,6 +595,6 @@ def learn_normalized(
         )
     else:
         model = learn(
-            jnp.asarray(norm), template.faces, n_components=n_components, **template.rig_kwargs()
+            jnp.asarray(norm), template.faces, n_components=n_components, rig=template.rig
         )
     return model, norm

@@ -6,7 +6,10 @@ Format `bodyprior.sscape`, version 1: one zip file (stored, not compressed) hold
   "joint_names": [...], "leaves": {name: {"shape": [...], "dtype": "float64"}, ...},
   "leaves_sha256": "..."}`;
 - `leaves.eqx`: the array leaves, in sorted field-name order, written by
-  `eqx.tree_serialise_leaves`.
+  `eqx.tree_serialise_leaves`. The rig's arrays keep the names they had as fields of the model
+  before it held a [`bodyprior.Rig`][] (`skin_indices`, `skin_weights`,
+  `joint_regressor_indices`, `joint_regressor_weights`), so files written before and after that
+  change are the same format and load alike.
 
 Writes are atomic (temporary file in the target directory, fsync, `os.replace`). Loading validates
 the format name, version, shapes, dtypes and checksum and raises `ValueError` on any mismatch; it
@@ -22,6 +25,7 @@ import equinox as eqx
 import numpy as np
 
 from .._io import _read_zip, _write_zip
+from .._rig import Rig
 from ._model import SScapeModel
 
 FORMAT_NAME = "bodyprior.sscape"
@@ -98,6 +102,14 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
                 f"{like[k].shape} {like[k].dtype}."
             )
     try:
-        return SScapeModel(parents=meta["parents"], joint_names=meta["joint_names"], **arrays)
+        rig = Rig(
+            parents=meta["parents"],
+            joint_names=meta["joint_names"],
+            skin_indices=arrays.pop("skin_indices"),
+            skin_weights=arrays.pop("skin_weights"),
+            regressor_indices=arrays.pop("joint_regressor_indices"),
+            regressor_weights=arrays.pop("joint_regressor_weights"),
+        )
+        return SScapeModel(rig=rig, **arrays)
     except (KeyError, TypeError) as e:
         raise ValueError(f"{path!r}: invalid metadata: {e}") from e
