@@ -1,4 +1,5 @@
-"""bodyprior: statistical human body models in JAX (S-SCAPE, PanoMan, DSPP) on one MakeHuman topology.
+"""bodyprior: statistical human body models in JAX (S-SCAPE, PanoMan, DSPP) on one MakeHuman
+topology.
 
 Public API. Implementation lives in private modules; model families are subpackages
 (`bodyprior.sscape`). Units are metres and radians; the world frame is Z up, the body facing -Y.

@@ -69,8 +69,10 @@ def lbs(
     arrays) indices outside `[0, J)`.
     """
     x, idx, w, T = _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms)
-    # One row gather per weight slot, accumulated elementwise: XLA fuses this into a single loop. The
-    # equivalent `einsum("vk,vkab->vab", w, T[idx])` lowers to a (V, K, 3, 4) gather plus V tiny matmuls
+    # One row gather per weight slot, accumulated elementwise: XLA fuses this into a single loop.
+    # The
+    # equivalent `einsum("vk,vkab->vab", w, T[idx])` lowers to a (V, K, 3, 4) gather plus V tiny
+    # matmuls
     # and is ~100x slower under vmap on CPU.
     T12 = T[:, :3, :].reshape(T.shape[0], 12)
     M = w[:, 0:1] * T12[idx[:, 0]]

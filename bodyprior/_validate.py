@@ -1,7 +1,9 @@
 """Host-side input checks.
 
-Every public entry point validates its inputs here, before anything is traced, so that bad input gets a
-`ValueError` naming the argument and the expected shape or range instead of an error from inside XLA.
+Every public entry point validates its inputs here, before anything is traced, so that bad input
+gets a
+`ValueError` naming the argument and the expected shape or range instead of an error from inside
+XLA.
 Arrays that are tracers (inside a user's `jit`) are only checked for shape and dtype kind.
 """
 
@@ -18,7 +20,12 @@ def is_tracer(x) -> bool:
 
 
 def _shape_str(shape: Sequence[int | str | None]) -> str:
-    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+    return (
+        "("
+        + ", ".join("*" if s is None else str(s) for s in shape)
+        + ("," if len(shape) == 1 else "")
+        + ")"
+    )
 
 
 def check_array(
@@ -36,7 +43,8 @@ def check_array(
 
     - `x`: array-like (NumPy, JAX, or a tracer).
     - `name`: argument name used in the error message.
-    - `shape`: expected shape; entries are ints (exact), `None` (any size), or strings naming a size that
+    - `shape`: expected shape; entries are ints (exact), `None` (any size), or strings naming a size
+      that
       must agree with other arrays sharing `dims`.
     - `finite`: also reject NaN/inf (skipped for tracers).
     - `integer`: require an integer dtype.
@@ -56,7 +64,8 @@ def check_array(
         if isinstance(want, str):
             if want in dims and dims[want] != got:
                 raise ValueError(
-                    f"`{name}` must have shape {_shape_str(shape)} with {want}={dims[want]}, got shape {xs}."
+                    f"`{name}` must have shape {_shape_str(shape)} with {want}={dims[want]}, "
+                    f"got shape {xs}."
                 )
             dims[want] = got
         elif got != want:
@@ -77,7 +86,9 @@ def check_range(x, name: str, lo: float, hi: float):
     if not is_tracer(x):
         a = np.asarray(x)
         if a.size and (a.min() < lo or a.max() > hi):
-            raise ValueError(f"`{name}` must lie in [{lo}, {hi}], got values in [{a.min()}, {a.max()}].")
+            raise ValueError(
+                f"`{name}` must lie in [{lo}, {hi}], got values in [{a.min()}, {a.max()}]."
+            )
     return x
 
 

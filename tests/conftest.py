@@ -1,6 +1,7 @@
 """Shared test configuration.
 
-x64 is switched on for the whole suite: solver and finite-difference gradient tests need float64, and
+x64 is switched on for the whole suite: solver and finite-difference gradient tests need float64,
+and
 library code must behave identically under both precisions (it never hard-codes a dtype).
 """
 

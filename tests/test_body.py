@@ -32,7 +32,8 @@ def test_asset_contents():
     assert len(a["landmark_names"]) >= 60
     assert m["macro_max_error_m"] < 1e-7
     assert os.path.getsize(assets.asset_path()) < 32 * 2**20
-    # Template: metres, Z up, about 1.6-1.7 m tall, facing -Y (nose is the most anterior head point).
+    # Template: metres, Z up, about 1.6-1.7 m tall, facing -Y (nose is the most anterior head
+    # point).
     t = a["template_vertices"]
     assert 1.5 < t[:, 2].max() - t[:, 2].min() < 1.8
     # Skin weights: top-k rows sum to one.
@@ -77,12 +78,15 @@ def test_asset_checksum_and_format_errors(tmp_path):
 def test_hat_weights(x):
     for feat, (names, lo, hi) in _INTERPOLATED.items():
         p = bp.phenotype_vector(**{feat: np.clip(x, lo, hi)})
-        w = np.asarray(bp.variation_weights(jnp.asarray(p), tuple(bp.load_asset()["variation_labels"])))
+        w = np.asarray(
+            bp.variation_weights(jnp.asarray(p), tuple(bp.load_asset()["variation_labels"]))
+        )
         labels = list(bp.load_asset()["variation_labels"])
         ws = np.array([w[labels.index(n)] for n in names])
         assert np.all(ws >= 0) and abs(ws.sum() - 1) < 1e-12
         anchors = np.linspace(lo, hi, len(names))
-        assert abs((ws * anchors).sum() - np.clip(x, lo, hi)) < 1e-12  # linear interpolation reproduces x
+        # linear interpolation reproduces x
+        assert abs((ws * anchors).sum() - np.clip(x, lo, hi)) < 1e-12
 
 
 def test_family_coefficients_sum_to_one(body, getkey):
@@ -108,7 +112,8 @@ def test_rest_shape_is_plausible_and_linear(body):
     # Joints: hips below the head, root first.
     names = body.joint_names
     assert names[0] == "Hips" and mj[names.index("Head"), 2] > mj[0, 2]
-    # The shape is affine in the macro coefficients: midpoint of coefficient vectors -> midpoint mesh.
+    # The shape is affine in the macro coefficients: midpoint of coefficient vectors -> midpoint
+    # mesh.
     p1, p2 = bp.phenotype_vector(weight=0.2), bp.phenotype_vector(weight=0.4)
     v1, v2 = bp.rest_shape(body, p1)[0], bp.rest_shape(body, p2)[0]
     vm = bp.rest_shape(body, bp.phenotype_vector(weight=0.3))[0]
@@ -150,8 +155,10 @@ def test_evaluate_grad_vmap_and_no_recompile(body, getkey):
     for arg, idx in ((1, (3, 1)), (0, (4,))):  # height 0.5 is not a hat-function kink
         args = [p, pose]
         d = jnp.zeros_like(args[arg]).at[idx].set(eps)
-        fd = (loss(*[a + d if i == arg else a for i, a in enumerate(args)])
-              - loss(*[a - d if i == arg else a for i, a in enumerate(args)])) / (2 * eps)
+        fd = (
+            loss(*[a + d if i == arg else a for i, a in enumerate(args)])
+            - loss(*[a - d if i == arg else a for i, a in enumerate(args)])
+        ) / (2 * eps)
         g = jax.grad(loss, argnums=arg)(p, pose)[idx]
         assert abs(float(g) - float(fd)) < 1e-4 * max(1.0, abs(float(fd)))
 
@@ -278,7 +285,10 @@ def test_population(getkey):
 def test_cli(tmp_path, capsys):
     from bodyprior.cli import main
 
-    assert main(["sample", "--n", "3", "--seed", "1", "--out", str(tmp_path), "--no-local-changes"]) == 0
+    assert (
+        main(["sample", "--n", "3", "--seed", "1", "--out", str(tmp_path), "--no-local-changes"])
+        == 0
+    )
     files = sorted(os.listdir(tmp_path))
     assert "contact_sheet.png" in files and "population.json" in files
     assert len([f for f in files if f.endswith(".ply")]) == 3
@@ -295,7 +305,8 @@ def test_cli(tmp_path, capsys):
 
 
 def test_sscape_space_from_population():
-    """An S-SCAPE space learned from the population, with the default body's rig, reconstructs held-out
+    """An S-SCAPE space learned from the population, with the default body's rig, reconstructs
+    held-out
     bodies and poses like the body it came from."""
     b = bp.load_default_body()
     pop = bp.sample_population(
@@ -304,14 +315,18 @@ def test_sscape_space_from_population():
     train, test = pop.vertices[:40], pop.vertices[40:]
     space = bp.sscape.learn(train, b.faces, n_components=20, rig=b.rig)
     assert space.n_joints == 31 and space.n_components == 20
-    # Held-out bodies (rigidly aligned to the mean) are reconstructed from 20 components to a few mm.
-    aligned, _ = bp.sscape.procrustes_align(jnp.concatenate([space.mean[None], test]), reference=space.mean)
+    # Held-out bodies (rigidly aligned to the mean) are reconstructed from 20 components to a few
+    # mm.
+    aligned, _ = bp.sscape.procrustes_align(
+        jnp.concatenate([space.mean[None], test]), reference=space.mean
+    )
     d = (aligned[1:] - space.mean).reshape(len(test), -1)
     B = space.basis.reshape(space.n_components, -1)
     recon = (d @ B.T) @ B
     err = np.linalg.norm(np.asarray(recon - d).reshape(len(test), -1, 3), axis=-1).mean()
     assert err < 0.006
-    # The mean posed with the body's rig: zero pose is the mean; bending an elbow moves only that arm.
+    # The mean posed with the body's rig: zero pose is the mean; bending an elbow moves only that
+    # arm.
     v0, _ = bp.sscape.evaluate(space, jnp.zeros(20), jnp.zeros((31, 3)))
     np.testing.assert_allclose(v0, space.mean, atol=1e-5)
     pose = jnp.zeros((31, 3)).at[b.joint_names.index("LeftForeArm")].set(jnp.array([0.0, 0.0, 1.0]))

@@ -1,4 +1,5 @@
-"""The grid radius search (`bodyprior.registration._grid`) equals brute force, including points on the
+"""The grid radius search (`bodyprior.registration._grid`) equals brute force, including points on
+the
 search sphere, queries outside the grid and grids clamped at `_GRID_AXIS` cells per axis."""
 
 import jax

@@ -49,7 +49,11 @@ def _imports(path: Path, package: list[str]):
 
 
 def _family(dotted: list[str]) -> str | None:
-    return dotted[1] if len(dotted) > 1 and dotted[0] == "bodyprior" and dotted[1] in FAMILIES else None
+    return (
+        dotted[1]
+        if len(dotted) > 1 and dotted[0] == "bodyprior" and dotted[1] in FAMILIES
+        else None
+    )
 
 
 def _violations():

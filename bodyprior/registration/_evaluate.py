@@ -2,7 +2,8 @@
 
 Two per-vertex errors of a fitted template mesh, both reported in **millimetres**:
 
-- [`bodyprior.registration.fitting_error`][]: the paper's measure, which needs no ground truth. For each
+- [`bodyprior.registration.fitting_error`][]: the paper's measure, which needs no ground truth. For
+  each
   fitted template vertex the nearest scan point is found; if it lies within `max_dist` (50 mm) and
   the vertex normal and the scan point's normal differ by at most `max_angle_deg` (60 deg), the
   Euclidean vertex-to-point distance is the vertex's error, else the vertex has no error (`valid` is
@@ -10,11 +11,14 @@ Two per-vertex errors of a fitted template mesh, both reported in **millimetres*
   paper words it ("If this neighbor [is] not further ... than 50 mm and its face normals do not
   deviate more than 60 deg, the ... distance is computed"); `search="compatible"` instead takes the
   nearest point among the compatible ones (what the fitters' data terms use).
-- [`bodyprior.registration.gt_error`][]: distance of each fitted vertex to its true corresponding vertex,
+- [`bodyprior.registration.gt_error`][]: distance of each fitted vertex to its true corresponding
+  vertex,
   which only a simulated scan can provide (CAESAR has no ground-truth correspondence).
 
-Aggregations: [`bodyprior.registration.cumulative_curve`][] (proportion of vertices below each threshold,
-the paper's Figs. 1a/2a, 0-20 mm and 0-50 mm) and [`bodyprior.registration.mean_vertex_error`][] (the
+Aggregations: [`bodyprior.registration.cumulative_curve`][] (proportion of vertices below each
+threshold,
+the paper's Figs. 1a/2a, 0-20 mm and 0-50 mm) and [`bodyprior.registration.mean_vertex_error`][]
+(the
 per-vertex error averaged over scans, Fig. 1b), with figure helpers
 [`bodyprior.registration.plot_cumulative_curves`][] (matplotlib Agg) and
 [`bodyprior.registration.error_colormap_png`][] (the per-vertex error on the body).
@@ -222,7 +226,8 @@ def fitting_error(
     - `max_angle_deg`: normal gate, degrees (paper: 60).
     - `search`: `"nearest"` (paper, default) or `"compatible"`.
 
-    **Returns:** a [`bodyprior.registration.FittingError`][] `(error_mm (V,), valid (V,), nearest (V,))`.
+    **Returns:** a [`bodyprior.registration.FittingError`][] `(error_mm (V,), valid (V,), nearest
+    (V,))`.
     """
     args = _fitting_error_args(vertices, scan, faces, max_dist, max_angle_deg, search, False)
     return _fitting_error_jit(*args)
@@ -253,7 +258,8 @@ def gt_error(
     """Per-vertex distance to the true corresponding vertex, millimetres.
 
     Both meshes are in the same frame and vertex order (e.g. a registration in the scan frame and
-    the restricted ground-truth body, [`bodyprior.registration.RegistrationTemplate.restrict`][]). Works
+    the restricted ground-truth body, [`bodyprior.registration.RegistrationTemplate.restrict`][]).
+    Works
     on one mesh `(V, 3)` or any leading batch shape.
 
     **Returns:** `1000 * ||vertices - true_vertices||` per vertex, shape `(*batch, V)`.
@@ -362,7 +368,8 @@ def plot_cumulative_curves(
 
     **Arguments:**
 
-    - `curves`: label -> `(T,)` proportions (e.g. from [`bodyprior.registration.cumulative_curve`][]).
+    - `curves`: label -> `(T,)` proportions (e.g. from
+      [`bodyprior.registration.cumulative_curve`][]).
     - `thresholds_mm`: the shared thresholds `(T,)`.
     - `path`: output PNG (written atomically).
     - `title`, `xlabel`, `ylabel`: texts.

@@ -34,7 +34,8 @@ the body, and two cameras above and below the projector triangulate it):
   `landmark_missing` (then `landmark_mask` is False and the position is 0).
 
 Frames and units: scans are in the frame of the body they were made from (world frame, metres, Z up,
-facing -Y); the floor is the body's lowest point. [`bodyprior.registration.ScanTruth`][] keeps the exact
+facing -Y); the floor is the body's lowest point. [`bodyprior.registration.ScanTruth`][] keeps the
+exact
 surface point behind every scan point, for evaluation only: it is never given to a fitter.
 
 Speed (measured on the shared 2-core machine, one core, 13,380-vertex body, default config, about
@@ -84,7 +85,8 @@ class Scan(eqx.Module):
     - `points`: shape `(P, 3)`, metres.
     - `normals`: unit outward normals, shape `(P, 3)`.
     - `point_mask`: shape `(P,)`, bool; False marks padding rows (see
-      [`bodyprior.registration.pad_scans`][]; padding rows repeat real points, so a consumer that ignored
+      [`bodyprior.registration.pad_scans`][]; padding rows repeat real points, so a consumer that
+      ignored
       the mask would only see duplicates).
     - `landmarks`: shape `(L, 3)`, metres (0 where missing).
     - `landmark_mask`: shape `(L,)`, bool; False = the landmark is missing.
@@ -518,7 +520,8 @@ def simulate_scan(
     - `landmark_names`: `L` names (`body.landmark_names`).
     - `config`: a [`bodyprior.registration.ScannerConfig`][].
 
-    **Returns:** `(scan, truth)`: a [`bodyprior.registration.Scan`][] with `P = min(config.n_points, raw
+    **Returns:** `(scan, truth)`: a [`bodyprior.registration.Scan`][] with `P = min(config.n_points,
+    raw
     hits)` points (all `point_mask` True) and its [`bodyprior.registration.ScanTruth`][].
     """
     if not isinstance(config, ScannerConfig):
@@ -602,7 +605,8 @@ def pad_scans(
 
     **Arguments:**
 
-    - `scans`: a non-empty sequence of unbatched [`bodyprior.registration.Scan`][]s (same landmark names),
+    - `scans`: a non-empty sequence of unbatched [`bodyprior.registration.Scan`][]s (same landmark
+      names),
       or of [`bodyprior.registration.ScanTruth`][]s.
     - `n_points`: points per scan after padding (default: the largest scan); a scan with more points
       is an error (sub-sample it first). Padding rows repeat the scan's own real points cyclically
@@ -721,7 +725,8 @@ def _empty_scan_message(name: str, shape, min_points: int = 1, masked: bool = Fa
 
 
 def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan:
-    """Validates a (possibly batched) [`bodyprior.registration.Scan`][] on the host; returns it unchanged.
+    """Validates a (possibly batched) [`bodyprior.registration.Scan`][] on the host; returns it
+    unchanged.
 
     Raises `ValueError` naming `name` (and the field) when the scan is not a `Scan`, has
     inconsistent shapes, fewer than `min_points` real points (in any scan of a batch), NaN or
@@ -731,7 +736,9 @@ def check_scan(scan: Scan, *, min_points: int = 100, name: str = "scan") -> Scan
     0.001). Traced scans are only checked for shapes.
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`{name}` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
+        raise ValueError(
+            f"`{name}` must be a bodyprior.registration.Scan, got {type(scan).__name__}."
+        )
     if 0 in tuple(scan.points.shape):  # no points, or an empty batch (static shapes)
         raise ValueError(_empty_scan_message(name, scan.points.shape, max(min_points, 1)))
     if is_tracer(scan.points):

@@ -7,7 +7,8 @@ paper (1771, 3253, 3641, 4237, 4301 of 4308 CAESAR scans passed after each).
 **The gate** replaces the paper's visual inspection, which it keeps because "low average fitting
 errors do not always correspond to good results, since the fitting of localized areas may be
 inaccurate". [`bodyprior.sscape.registration_gate`][] therefore checks the paper's fitting error
-([`bodyprior.registration.fitting_error`][], nearest scan point within 50 mm and 60 deg) globally *and*
+([`bodyprior.registration.fitting_error`][], nearest scan point within 50 mm and 60 deg) globally
+*and*
 per body part, ignoring the hands (the paper does not register them):
 
 1. the fraction of (non-hand) template vertices whose fitting error is at most `threshold_mm`
@@ -151,7 +152,8 @@ def registration_gate(
     - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (faces, hands, skinning
       for parts).
     - `config`: a [`bodyprior.sscape.GateConfig`][].
-    - `errors`: optional precomputed [`bodyprior.registration.FittingError`][] (batched) with the same
+    - `errors`: optional precomputed [`bodyprior.registration.FittingError`][] (batched) with the
+      same
       `max_dist`/`max_angle_deg`, to avoid recomputing it.
 
     **Returns:** a [`bodyprior.sscape.GateResult`][].

@@ -396,7 +396,8 @@ def fit_depth(
 
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on `template`'s topology.
     - `front_scan`, `back_scan`: one [`bodyprior.registration.Scan`][] each (e.g. from
-      [`bodyprior.registration.depth_to_scan`][]), world frame, metres, normals facing their camera, each
+      [`bodyprior.registration.depth_to_scan`][]), world frame, metres, normals facing their camera,
+      each
       with at least 4 landmarks known to `template` (the paper placed 14 by hand). They are padded
       to a common point count if needed.
     - `template`: the [`bodyprior.registration.RegistrationTemplate`][].
@@ -422,7 +423,9 @@ def fit_depth(
         raise ValueError(f"`config` must be a DepthFitConfig, got {type(config).__name__}.")
     for name, sc in (("front_scan", front_scan), ("back_scan", back_scan)):
         if not isinstance(sc, Scan):
-            raise ValueError(f"`{name}` must be a bodyprior.registration.Scan, got {type(sc).__name__}.")
+            raise ValueError(
+                f"`{name}` must be a bodyprior.registration.Scan, got {type(sc).__name__}."
+            )
         if np.ndim(sc.points) != 2:
             raise ValueError(
                 f"`{name}` must be one (unbatched) scan, got points of shape {np.shape(sc.points)}."

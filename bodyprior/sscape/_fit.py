@@ -310,7 +310,9 @@ def compatible_correspondences(
     `(V,)` float weight, 1.0 for a valid pair and 0.0 otherwise.
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
+        raise ValueError(
+            f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}."
+        )
     dims: dict[str, int] = {}
     check_array(verts, "verts", ("V", 3), dims=dims)
     check_array(normals, "normals", ("V", 3), dims=dims)
@@ -363,7 +365,9 @@ def fit_similarity(template_landmarks: Float[Array, "L 3"], scan: Scan) -> Simil
     **Returns:** a [`bodyprior.Similarity`][].
     """
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
+        raise ValueError(
+            f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}."
+        )
     dims: dict[str, int] = {}
     check_array(template_landmarks, "template_landmarks", ("L", 3), dims=dims)
     check_array(scan.landmarks, "scan.landmarks", ("L", 3), dims=dims, finite=False)
@@ -466,11 +470,7 @@ def _pass_loop(
             done = worse
         else:
             done = False
-        done = (
-            done
-            | (jnp.abs(prev - term) <= rtol * prev)
-            | (jnp.abs(prev_d - mean_d) <= atol_mm)
-        )
+        done = done | (jnp.abs(prev - term) <= rtol * prev) | (jnp.abs(prev_d - mean_d) <= atol_mm)
         bad = bad | bad_step | ~jnp.isfinite(term)
         hist = hist.at[i + 1].set(term)
         dhist = dhist.at[i + 1].set(mean_d)
@@ -723,7 +723,9 @@ def _prepare(model, scan, template, config, shape_residual, init, batched: bool)
     if not isinstance(config, FitConfig):
         raise ValueError(f"`config` must be a FitConfig, got {type(config).__name__}.")
     if not isinstance(scan, Scan):
-        raise ValueError(f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}.")
+        raise ValueError(
+            f"`scan` must be a bodyprior.registration.Scan, got {type(scan).__name__}."
+        )
     if shape_residual is not None and not callable(shape_residual):
         raise ValueError(
             f"`shape_residual` must be a callable (rest_vertices (V, 3)) -> (R,) or None, got "
@@ -731,8 +733,8 @@ def _prepare(model, scan, template, config, shape_residual, init, batched: bool)
         )
     if model.n_vertices != template.n_vertices:
         raise ValueError(
-            f"`model` has {model.n_vertices} vertices but `template` has {template.n_vertices}: the "
-            "model must be learned on the template's topology (`template.restrict(...)`)."
+            f"`model` has {model.n_vertices} vertices but `template` has {template.n_vertices}: "
+            "the model must be learned on the template's topology (`template.restrict(...)`)."
         )
     if tuple(model.faces.shape) != tuple(template.faces.shape):
         raise ValueError(
@@ -848,7 +850,8 @@ def fit_sscape(
     - `model`: an [`bodyprior.sscape.SScapeModel`][] on the template's topology (e.g.
       `learn(template.restrict(pop.vertices), template.faces, n_components=K,
       rig=template.rig)`).
-    - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks must be
+    - `scan`: one [`bodyprior.registration.Scan`][] (metres); at least 4 of its present landmarks
+      must be
       named in `template.landmark_names`.
     - `template`: the [`bodyprior.registration.RegistrationTemplate`][] (landmark vertices, hand
       mask).
@@ -897,12 +900,14 @@ def fit_sscape_batch(
     """Fits many scans: `vmap` of the single-scan fit, spread over devices, in chunks.
 
     The scans (padded to a common point count, `point_mask` False on padding; see
-    [`bodyprior.registration.pad_scans`][]) are cut into chunks of `chunk_size` scans; every device fits
+    [`bodyprior.registration.pad_scans`][]) are cut into chunks of `chunk_size` scans; every device
+    fits
     its own slice of each chunk: on accelerators one jitted call per chunk whose scan axis is split
     over `devices` with `jax.sharding` (`Mesh` + `NamedSharding(mesh, PartitionSpec("scan"))`,
     compiled once), on CPUs one call per device (compiled once per device; the partitioned program
     deadlocks on host CPU devices). A tqdm bar counts the scans. See
-    [`bodyprior.registration.batch_map`][] (`strategy`) and multi-process `jax.distributed` clusters.
+    [`bodyprior.registration.batch_map`][] (`strategy`) and multi-process `jax.distributed`
+    clusters.
 
     **Arguments:** as [`bodyprior.sscape.fit_sscape`][], plus
 
