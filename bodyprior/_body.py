@@ -1,10 +1,16 @@
-"""The embedded default body: MakeHuman's phenotype shape space, local changes, facial actions and rigs.
+"""The embedded default body: MakeHuman's phenotype shape space, local changes, facial actions and
+rigs.
 
-The phenotype model reproduces the MakeHuman macro-target interpolation as anny (0.6.2) implements it: each
-phenotype gets 1-D "hat" weights over its variations, every macro target's coefficient is the product of
-the weights of the variations it names, and the rest mesh is the template plus the weighted sum of targets.
-Joints (bone heads) are means of MakeHuman joint-cube vertices and are carried through the same linear
-map, so they follow the body shape exactly. Posing uses the convention of `docs/architecture.md` (anny's
+The phenotype model reproduces the MakeHuman macro-target interpolation as anny (0.6.2) implements
+it: each
+phenotype gets 1-D "hat" weights over its variations, every macro target's coefficient is the
+product of
+the weights of the variations it names, and the rest mesh is the template plus the weighted sum of
+targets.
+Joints (bone heads) are means of MakeHuman joint-cube vertices and are carried through the same
+linear
+map, so they follow the body shape exactly. Posing uses the convention of `docs/architecture.md`
+(anny's
 `local-ref` parameterisation): local rotations in world-aligned axes at each bone head.
 
 Frame and units: metres, Z up, the body faces -Y, +X is the body's left.
@@ -30,9 +36,11 @@ from .assets import load_asset
 UNIT = 1e-4  # metres per int16 step in the asset
 
 #: Phenotype parameters, in the order of a phenotype vector. All lie in [0, 1]:
-#: gender 0 = male, 1 = female; age 0 = baby, 1/3 = child, 2/3 = young adult (~25 y), 1 = old (~90 y);
+# : gender 0 = male, 1 = female; age 0 = baby, 1/3 = child, 2/3 = young adult (~25 y), 1 = old (~90
+# y);
 #: muscle, weight: 0 = min, 0.5 = average, 1 = max; height: 0 = min, 1 = max; proportions 0 = ideal,
-#: 1 = uncommon; cupsize, firmness: 0 = min, 0.5 = average, 1 = max; african/asian/caucasian: ethnicity
+# : 1 = uncommon; cupsize, firmness: 0 = min, 0.5 = average, 1 = max; african/asian/caucasian:
+# ethnicity
 #: weights, normalised by their sum (all zero = 1/3 each).
 PHENOTYPES = (
     "gender",
@@ -73,15 +81,20 @@ def _range_text(k: str) -> str:
 
 
 def phenotype_vector(**values: float) -> np.ndarray:
-    """A phenotype vector, shape `(11,)`, from keyword values; unspecified entries are 0.5 (anny's default).
+    """A phenotype vector, shape `(11,)`, from keyword values; unspecified entries are 0.5 (anny's
+    default).
 
-    Every entry lies in [0, 1] except `age`, in [-1/3, 1] (see [`bodyprior.PHENOTYPES`][]). `gender` 0 is
-    male and 1 is female (at `age=2/3`, gender 0 is ~14 cm taller, gender 1 has more breast and hip).
+    Every entry lies in [0, 1] except `age`, in [-1/3, 1] (see [`bodyprior.PHENOTYPES`][]). `gender`
+    0 is
+    male and 1 is female (at `age=2/3`, gender 0 is ~14 cm taller, gender 1 has more breast and
+    hip).
 
-    **Example:** `phenotype_vector(gender=1.0, age=0.7, weight=0.8)` (a woman, somewhat older than a young
+    **Example:** `phenotype_vector(gender=1.0, age=0.7, weight=0.8)` (a woman, somewhat older than a
+    young
     adult, somewhat heavy).
 
-    **Raises:** `ValueError` naming the entry for an unknown name or a value outside the entry's range.
+    **Raises:** `ValueError` naming the entry for an unknown name or a value outside the entry's
+    range.
     """
     unknown = set(values) - set(PHENOTYPES)
     if unknown:
@@ -94,11 +107,15 @@ def phenotype_vector(**values: float) -> np.ndarray:
     return np.array([float(values.get(k, 0.5)) for k in PHENOTYPES])
 
 
-def variation_weights(phenotypes: Float[Array, 11], variation_labels: tuple[str, ...]) -> Float[Array, 24]:
+def variation_weights(
+    phenotypes: Float[Array, " 11"], variation_labels: tuple[str, ...]
+) -> Float[Array, " 24"]:
     """Per-variation weights (anny's `phenotype_blendshape_weights` before the product rule).
 
-    Interpolated features get piecewise-linear hat weights over evenly spaced anchors (values are clamped to
-    the anchor range, as anny does without extrapolation); the ethnicity weights are normalised by their sum.
+    Interpolated features get piecewise-linear hat weights over evenly spaced anchors (values are
+    clamped to
+    the anchor range, as anny does without extrapolation); the ethnicity weights are normalised by
+    their sum.
     """
     p = dict(zip(PHENOTYPES, phenotypes))
     out = {}
@@ -147,17 +164,20 @@ class BonePlacement(eqx.Module):
 class DefaultBody(eqx.Module):
     """The embedded MakeHuman default body (CC0), as a JAX PyTree.
 
-    Build it with [`bodyprior.load_default_body`][]. Arrays are leaves; labels and the bone tree are static.
+    Build it with [`bodyprior.load_default_body`][]. Arrays are leaves; labels and the bone tree are
+    static.
 
     **Fields** (V = 13,380 vertices, F = 26,756 triangles, R = rank of the phenotype basis):
 
     - `template`: rest vertices of the base body, shape `(V, 3)`, metres.
     - `faces`: triangles, shape `(F, 3)`, counter-clockwise seen from outside.
-    - `macro_masks`, `macro_coef`, `basis`: the 408 non-breast phenotype targets, each expressed exactly as
+    - `macro_masks`, `macro_coef`, `basis`: the 408 non-breast phenotype targets, each expressed
+      exactly as
       `macro_coef[t] @ basis` (basis shape `(R, V * 3)`); `macro_masks[t]` names its variations.
     - `breast_*`: the 216 breast targets (only if loaded with `breast=True`; otherwise cupsize and
       firmness are fixed at 0.5, where these targets have zero weight — anny's default).
-    - `local_basis`: local-change targets, shape `(2 C, V * 3)` (positive, negative per control), if loaded.
+    - `local_basis`: local-change targets, shape `(2 C, V * 3)` (positive, negative per control), if
+      loaded.
     - `face_basis`: the 52 facial-action targets, shape `(52, V * 3)`, if loaded.
     - `rig`: the skinned skeleton ([`bodyprior.Rig`][]): bone tree and names, skin weights, and the
       vertex joint regressor (joints as a fixed linear function of the surface, as S-SCAPE needs).
@@ -214,12 +234,15 @@ def _normalized(w) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _load_default_body_cached(rig: str, breast: bool, local_changes: bool, facial_actions: bool, dtype: str):
+def _load_default_body_cached(
+    rig: str, breast: bool, local_changes: bool, facial_actions: bool, dtype: str
+):
     a = load_asset()
     dt = np.dtype(dtype)
     V = a["template_vertices"].shape[0]
     basis = np.concatenate(
-        [a["macro_basis_int"].astype(np.float64) * UNIT, a["macro_basis_extra"].astype(np.float64)], 0
+        [a["macro_basis_int"].astype(np.float64) * UNIT, a["macro_basis_extra"].astype(np.float64)],
+        0,
     )
     basis_points = np.concatenate([a["macro_basis_int_points"], a["macro_basis_extra_points"]], 0)
     nb = a["macro_nonbreast_index"]
@@ -296,7 +319,8 @@ def load_default_body(
 
     **Arguments:**
 
-    - `rig`: `"cmu_mb"` (31 bones, the CMU motion-capture skeleton; default) or `"game_engine"` (53 bones,
+    - `rig`: `"cmu_mb"` (31 bones, the CMU motion-capture skeleton; default) or `"game_engine"` (53
+      bones,
       with fingers).
     - `breast`: also load the 216 breast targets so that `cupsize` and `firmness` act (else they are
       fixed at 0.5, where those targets have zero weight, as in anny's default phenotype set).
@@ -308,15 +332,20 @@ def load_default_body(
     """
     if rig not in RIGS:
         raise ValueError(f"`rig` must be one of {RIGS}, got {rig!r}.")
-    return _load_default_body_cached(rig, bool(breast), bool(local_changes), bool(facial_actions), np.dtype(dtype).name)
+    return _load_default_body_cached(
+        rig, bool(breast), bool(local_changes), bool(facial_actions), np.dtype(dtype).name
+    )
 
 
-# ------------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------
 # kernels (one body; vmap for batches)
 
 
-def target_weights(variation_w: Float[Array, 24], masks: Float[Array, "T 24"]) -> Float[Array, " T"]:
-    """MakeHuman's product rule: a target's weight is the product of the weights of the variations it names."""
+def target_weights(
+    variation_w: Float[Array, 24], masks: Float[Array, "T 24"]
+) -> Float[Array, " T"]:
+    """MakeHuman's product rule: a target's weight is the product of the weights of the variations
+    it names."""
     return jnp.prod(variation_w * masks + (1.0 - masks), axis=-1)
 
 
@@ -331,11 +360,14 @@ def _shape_terms(body: DefaultBody, phenotypes, local_changes, facial_actions):
     p = jnp.asarray(phenotypes, body.template.dtype)
     terms = [(macro_coefficients(body, p) @ body.macro_coef, body.basis, body.bones.head_basis)]
     if body.breast_basis is not None:
-        cb = target_weights(variation_weights(p, body.variation_labels).astype(p.dtype), body.breast_masks)
+        cb = target_weights(
+            variation_weights(p, body.variation_labels).astype(p.dtype), body.breast_masks
+        )
         terms.append((cb @ body.breast_coef, body.breast_basis, body.bones.head_breast))
     if local_changes is not None:
         x = jnp.asarray(local_changes, p.dtype)
-        # control x in [-1, 1]: weight max(x, 0) on the positive target, max(-x, 0) on the negative one
+        # control x in [-1, 1]: weight max(x, 0) on the positive target, max(-x, 0) on the negative
+        # one
         c = jnp.stack([jnp.maximum(x, 0.0), jnp.maximum(-x, 0.0)], -1).reshape(-1)
         terms.append((c, body.local_basis, body.bones.head_local))
     if facial_actions is not None:
@@ -368,14 +400,18 @@ def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_act
     phenotypes = _check_phenotypes(phenotypes)
     if local_changes is not None:
         if body.local_basis is None:
-            raise ValueError("`local_changes` given but the body was loaded without them: "
-                             "use load_default_body(local_changes=True).")
+            raise ValueError(
+                "`local_changes` given but the body was loaded without them: "
+                "use load_default_body(local_changes=True)."
+            )
         check_array(local_changes, "local_changes", (len(body.local_labels),))
         check_range(local_changes, "local_changes", -1.0, 1.0)
     if facial_actions is not None:
         if body.face_basis is None:
-            raise ValueError("`facial_actions` given but the body was loaded without them: "
-                             "use load_default_body(facial_actions=True).")
+            raise ValueError(
+                "`facial_actions` given but the body was loaded without them: "
+                "use load_default_body(facial_actions=True)."
+            )
         check_array(facial_actions, "facial_actions", (len(body.face_labels),))
         check_range(facial_actions, "facial_actions", 0.0, 1.0)
     return phenotypes
@@ -392,9 +428,12 @@ def rest_shape(
     **Arguments:**
 
     - `body`: the [`bodyprior.DefaultBody`][].
-    - `phenotypes`: shape `(11,)`, order [`bodyprior.PHENOTYPES`][], values in [0, 1] (age in [-1/3, 1],
-      down to newborns); `gender` 0 = male, 1 = female; see [`bodyprior.phenotype_vector`][]. An entry
-      outside its range raises a `ValueError` naming it (under `jit`, a runtime `eqx.error_if` error).
+    - `phenotypes`: shape `(11,)`, order [`bodyprior.PHENOTYPES`][], values in [0, 1] (age in [-1/3,
+      1],
+      down to newborns); `gender` 0 = male, 1 = female; see [`bodyprior.phenotype_vector`][]. An
+      entry
+      outside its range raises a `ValueError` naming it (under `jit`, a runtime `eqx.error_if`
+      error).
     - `local_changes`: optional, shape `(C,)`, in [-1, 1] (needs `local_changes=True` at load).
     - `facial_actions`: optional, shape `(52,)`, in [0, 1] (needs `facial_actions=True` at load).
 
@@ -408,7 +447,8 @@ def rest_shape(
 
 
 def pose_matrices(pose, n_joints: int, pose_rep: str):
-    """Validates a per-joint pose in representation `pose_rep` and converts it to `(J, 3, 3)` matrices."""
+    """Validates a per-joint pose in representation `pose_rep` and converts it to `(J, 3, 3)`
+    matrices."""
     shape = rotation_shape(pose_rep)
     check_array(pose, "pose", (n_joints, *shape))
     return jax.vmap(lambda x: rotation_to_matrix(x, pose_rep))(jnp.asarray(pose))
@@ -425,7 +465,8 @@ def evaluate(
     pose_rep: str = "axis_angle",
     skinning: str = "lbs",
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
-    """Shapes and poses one default body: rest shape from phenotypes, then forward kinematics and skinning.
+    """Shapes and poses one default body: rest shape from phenotypes, then forward kinematics and
+    skinning.
 
     **Arguments:**
 
@@ -433,7 +474,8 @@ def evaluate(
     - `pose`: per-joint local rotations in world-aligned axes at rest (anny's `local-ref`), shape
       `(J, *rotation_shape(pose_rep))`; `None` = rest pose. Joint order: `body.joint_names`.
     - `root_translation`: shape `(3,)`, metres, added to the root joint (`None` = 0).
-    - `pose_rep`: `"axis_angle"` (default), `"matrix"`, `"quaternion"`, `"sixd"` or `"euler_<ORDER>"`.
+    - `pose_rep`: `"axis_angle"` (default), `"matrix"`, `"quaternion"`, `"sixd"` or
+      `"euler_<ORDER>"`.
     - `skinning`: `"lbs"` (linear blend) or `"dqs"` (dual quaternion).
 
     **Returns:** `(vertices (V, 3), joints (J, 3))`, metres, world frame. Jittable, vmappable,
@@ -457,15 +499,18 @@ def evaluate(
 
 
 def landmarks(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "N 3"]:
-    """Positions of the named landmarks (`body.landmark_names`) on a mesh in the default topology."""
+    """Positions of the named landmarks (`body.landmark_names`) on a mesh in the default
+    topology."""
     return vertices[body.landmark_index]
 
 
 def regress_joints(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "J 3"]:
     """Joints as a fixed linear function of the body vertices alone (the S-SCAPE convention).
 
-    Fitted at asset build time so that, over the phenotype space, it reproduces the MakeHuman joint-cube
-    positions; see the asset build log for its residual. Prefer [`bodyprior.rest_shape`][] for exact joints
+    Fitted at asset build time so that, over the phenotype space, it reproduces the MakeHuman
+    joint-cube
+    positions; see the asset build log for its residual. Prefer [`bodyprior.rest_shape`][] for exact
+    joints
     when the phenotypes are known.
     """
     if not is_tracer(vertices):

@@ -1,19 +1,20 @@
 """A Kinect-like depth camera: rendering, back-projection to scans, simulated depth captures.
 
-The acquisition half of body reconstruction from depth images (S-SCAPE paper §6, after Helten
-et al. 2013; the fit itself is `bodyprior.sscape.fit_depth`). A Kinect-like depth camera (`DepthCamera`: pinhole, 512x424 pixels, Kinect v2 depth intrinsics
-fx = fy = 365 px, principal point at the image centre) renders the exact first-hit depth of a mesh
-with the shared z-buffer of `bodyprior/_render.py` (perspective: `1 / z` is affine in screen space,
-so the per-pixel depth is the exact ray/triangle intersection at the pixel centre), plus axial noise
-that grows with the square of the depth, as Kinect depth noise does. `depth_to_scan` back-projects
-the valid pixels to a world-frame [`bodyprior.registration.Scan`][] with normals from the (edge-aware
-smoothed) depth-image gradients. The pixel -> (face, barycentric) ground truth is kept in a separate
+The acquisition half of body reconstruction from depth images (S-SCAPE paper §6, after Helten et al.
+2013; the fit itself is `bodyprior.sscape.fit_depth`). A Kinect-like depth camera (`DepthCamera`:
+pinhole, 512x424 pixels, Kinect v2 depth intrinsics fx = fy = 365 px, principal point at the image
+centre) renders the exact first-hit depth of a mesh with the shared z-buffer of
+`bodyprior/_render.py` (perspective: `1 / z` is affine in screen space, so the per-pixel depth is
+the exact ray/triangle intersection at the pixel centre), plus axial noise that grows with the
+square of the depth, as Kinect depth noise does. `depth_to_scan` back-projects the valid pixels to a
+world-frame [`bodyprior.registration.Scan`][] with normals from the (edge-aware smoothed)
+depth-image gradients. The pixel -> (face, barycentric) ground truth is kept in a separate
 `DepthTruth` for evaluation only.
 
-Camera frame (OpenCV): x to the image right, y to the image bottom, z along the optical axis.
-Pixel `(i, j)` (row, column) covers `[j, j + 1] x [i, i + 1]` in image coordinates `(u, v)`, so
-its centre is `(j + 0.5, i + 0.5)` and the principal point `(W / 2, H / 2)` is the image centre.
-Depth is `z` (distance along the optical axis, as Kinect reports it), metres; 0 means no return.
+Camera frame (OpenCV): x to the image right, y to the image bottom, z along the optical axis. Pixel
+`(i, j)` (row, column) covers `[j, j + 1] x [i, i + 1]` in image coordinates `(u, v)`, so its centre
+is `(j + 0.5, i + 0.5)` and the principal point `(W / 2, H / 2)` is the image centre. Depth is `z`
+(distance along the optical axis, as Kinect reports it), metres; 0 means no return.
 """
 
 from __future__ import annotations
@@ -358,12 +359,14 @@ def depth_to_scan(
     normal_radius: int = 2,
     max_jump: float = 0.03,
 ):
-    """Back-projects the valid pixels of a depth image to a world-frame [`bodyprior.registration.Scan`][].
+    """Back-projects the valid pixels of a depth image to a world-frame
+    [`bodyprior.registration.Scan`][].
 
     **Arguments:**
 
     - `depth`: `(H, W)` depth image in metres (0 = no return), e.g. from
-      [`bodyprior.registration.render_depth`][]; foreground only (segment the background away first).
+      [`bodyprior.registration.render_depth`][]; foreground only (segment the background away
+      first).
     - `camera`: the [`bodyprior.registration.DepthCamera`][] that took it.
     - `n_points`: fixed point count `P` of the scan: more valid pixels are sub-sampled at random
       (`seed`), fewer are padded (`point_mask` False). `None` = exactly the valid pixels.
@@ -373,7 +376,8 @@ def depth_to_scan(
       [`bodyprior.registration.depth_normals`][].
 
     **Returns:** a `Scan` whose points are in raster order of the selected pixels; normals face the
-    camera. Use [`bodyprior.registration.depth_scan_truth`][] with the same `n_points`/`seed` for the
+    camera. Use [`bodyprior.registration.depth_scan_truth`][] with the same `n_points`/`seed` for
+    the
     matching ground truth.
     """
     d = _check_depth(depth, camera)
