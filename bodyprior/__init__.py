@@ -8,6 +8,7 @@ Public API. Implementation lives in private modules; model families are subpacka
 from . import registration as registration  # noqa: I001  (the core before the families)
 from . import dspp as dspp
 from . import sscape as sscape
+from . import panoman as panoman
 from ._body import (
     PHENOTYPES as PHENOTYPES,
     BonePlacement as BonePlacement,

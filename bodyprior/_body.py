@@ -25,7 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._kinematics import forward_kinematics
 from ._rig import Rig
@@ -108,8 +108,8 @@ def phenotype_vector(**values: float) -> np.ndarray:
 
 
 def variation_weights(
-    phenotypes: Float[Array, " 11"], variation_labels: tuple[str, ...]
-) -> Float[Array, " 24"]:
+    phenotypes: Float[ArrayLike, " 11"], variation_labels: tuple[str, ...]
+) -> Float[Array, " M"]:
     """Per-variation weights (anny's `phenotype_blendshape_weights` before the product rule).
 
     Interpolated features get piecewise-linear hat weights over evenly spaced anchors (values are
@@ -187,10 +187,10 @@ class DefaultBody(eqx.Module):
 
     template: Float[Array, "V 3"]
     faces: Int[Array, "F 3"]
-    macro_masks: Float[Array, "T 24"]
+    macro_masks: Float[Array, "T M"]
     macro_coef: Float[Array, "T R"]
     basis: Float[Array, "R V3"]
-    breast_masks: Float[Array, "Tb 24"] | None
+    breast_masks: Float[Array, "Tb M"] | None
     breast_coef: Float[Array, "Tb Rb"] | None
     breast_basis: Float[Array, "Rb V3"] | None
     local_basis: Float[Array, "L V3"] | None
@@ -342,14 +342,14 @@ def load_default_body(
 
 
 def target_weights(
-    variation_w: Float[Array, 24], masks: Float[Array, "T 24"]
+    variation_w: Float[ArrayLike, " M"], masks: Float[ArrayLike, "T M"]
 ) -> Float[Array, " T"]:
     """MakeHuman's product rule: a target's weight is the product of the weights of the variations
     it names."""
     return jnp.prod(variation_w * masks + (1.0 - masks), axis=-1)
 
 
-def macro_coefficients(body: DefaultBody, phenotypes: Float[Array, 11]) -> Float[Array, " T"]:
+def macro_coefficients(body: DefaultBody, phenotypes: Float[ArrayLike, " 11"]) -> Float[Array, " T"]:
     """Weights of the 408 non-breast phenotype targets (product rule over variation weights)."""
     w = variation_weights(phenotypes, body.variation_labels).astype(body.macro_masks.dtype)
     return target_weights(w, body.macro_masks)
@@ -419,9 +419,9 @@ def _check_shape_inputs(body: DefaultBody, phenotypes, local_changes, facial_act
 
 def rest_shape(
     body: DefaultBody,
-    phenotypes: Float[Array, 11],
-    local_changes: Float[Array, " C"] | None = None,
-    facial_actions: Float[Array, " A"] | None = None,
+    phenotypes: Float[ArrayLike, " 11"],
+    local_changes: Float[ArrayLike, " C"] | None = None,
+    facial_actions: Float[ArrayLike, " A"] | None = None,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
     """Rest (unposed) vertices and joints of one body.
 
@@ -456,12 +456,12 @@ def pose_matrices(pose, n_joints: int, pose_rep: str):
 
 def evaluate(
     body: DefaultBody,
-    phenotypes: Float[Array, 11],
-    pose: Float[Array, "J ..."] | None = None,
-    root_translation: Float[Array, 3] | None = None,
+    phenotypes: Float[ArrayLike, " 11"],
+    pose: Float[ArrayLike, "J ..."] | None = None,
+    root_translation: Float[ArrayLike, " 3"] | None = None,
     *,
-    local_changes: Float[Array, " C"] | None = None,
-    facial_actions: Float[Array, " A"] | None = None,
+    local_changes: Float[ArrayLike, " C"] | None = None,
+    facial_actions: Float[ArrayLike, " A"] | None = None,
     pose_rep: str = "axis_angle",
     skinning: str = "lbs",
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
@@ -498,13 +498,13 @@ def evaluate(
     return body.rig.skin(verts, A, method=skinning), posed_joints
 
 
-def landmarks(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "N 3"]:
+def landmarks(body: DefaultBody, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "N 3"]:
     """Positions of the named landmarks (`body.landmark_names`) on a mesh in the default
     topology."""
     return vertices[body.landmark_index]
 
 
-def regress_joints(body: DefaultBody, vertices: Float[Array, "V 3"]) -> Float[Array, "J 3"]:
+def regress_joints(body: DefaultBody, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "J 3"]:
     """Joints as a fixed linear function of the body vertices alone (the S-SCAPE convention).
 
     Fitted at asset build time so that, over the phenotype space, it reproduces the MakeHuman

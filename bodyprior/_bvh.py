@@ -524,7 +524,7 @@ def write_bvh(path: str | os.PathLike, bvh: Bvh, *, precision: int = 10) -> None
         children[p].append(j)
     out = ["HIERARCHY"]
 
-    def vec(v: Sequence[float]) -> str:
+    def vec(v: Sequence[float] | np.ndarray) -> str:
         return " ".join(fmt % x for x in v)
 
     def emit(j: int, depth: int):

@@ -515,7 +515,7 @@ def nearest_neighbors(
     return idx, jnp.sum((queries - points[idx]) ** 2, axis=-1)
 
 
-def _closest_bary(p: Float[Array, "*b 3"], a, b, c) -> Float[Array, "*b 3"]:
+def _closest_bary(p: Float[Array, "*b 3"], a, b, c) -> Float[Array, "... 3"]:
     """Barycentric coordinates of the point of triangle `abc` closest to `p` (branch-free).
 
     Ericson, *Real-Time Collision Detection* (2005), §5.1.5 `ClosestPtPointTriangle`: Voronoi-region

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._rotations import _as_float
 from ._validate import check_array
@@ -83,7 +83,7 @@ def _depths(parents: Sequence[int]) -> list[int]:
     return depth
 
 
-def validate_parents(parents: Sequence[int]) -> tuple[int, ...]:
+def validate_parents(parents: Sequence[int | np.integer] | Int[ArrayLike, " J"]) -> tuple[int, ...]:
     """Checks a kinematic tree given as a parent list.
 
     **Arguments:**
@@ -282,7 +282,7 @@ class Similarity(eqx.Module):
         """The scale factor `s = exp(log_scale)`."""
         return jnp.exp(self.log_scale)
 
-    def apply(self, points: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
+    def apply(self, points: Float[ArrayLike, "*N 3"]) -> Float[Array, "*N 3"]:
         """Applies `x -> s R x + t` to each row.
 
         **Arguments:**

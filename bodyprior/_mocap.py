@@ -91,7 +91,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._body import DefaultBody, evaluate, load_default_body, phenotype_vector, rest_shape
 from ._bvh import Bvh, read_bvh, write_bvh
@@ -333,7 +333,7 @@ def _pose_index(joint_names: tuple[str, ...]) -> np.ndarray:
     return np.array([joint_names.index(n) for n in POSE_JOINTS])
 
 
-def rig_pose(body: DefaultBody, euler: Float[Array, "20 3"]) -> Float[Array, "J 3"]:
+def rig_pose(body: DefaultBody, euler: Float[ArrayLike, "20 3"]) -> Float[Array, "J 3"]:
     """Axis-angle pose of every rig joint from a DSPP pose.
 
     **Arguments:**
@@ -354,7 +354,7 @@ def rig_pose(body: DefaultBody, euler: Float[Array, "20 3"]) -> Float[Array, "J 
     return jnp.zeros((body.n_joints, 3), aa.dtype).at[idx].set(aa)
 
 
-def pose_euler(body: DefaultBody, pose: Float[Array, "J 3"]) -> Float[Array, "20 3"]:
+def pose_euler(body: DefaultBody, pose: Float[ArrayLike, "J 3"]) -> Float[Array, "20 3"]:
     """DSPP pose from an axis-angle rig pose: the inverse of [`bodyprior.rig_pose`][].
 
     The root and non-pose bones of `pose` are ignored.
@@ -1109,7 +1109,7 @@ def _posed_vertices(body, phen, euler):
 
 def render_poses(
     body: DefaultBody,
-    euler: Float[Array, "n 20 3"],
+    euler: Float[ArrayLike, "n 20 3"],
     path: str | os.PathLike,
     *,
     labels: Sequence[str] | None = None,

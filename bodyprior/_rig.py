@@ -17,7 +17,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._kinematics import validate_parents
 from ._skinning import dqs, lbs
@@ -100,7 +100,7 @@ class Rig(eqx.Module):
     def n_vertices(self) -> int:
         return self.skin_indices.shape[0]
 
-    def regress_joints(self, vertices: Float[Array, "V 3"]) -> Float[Array, "J 3"]:
+    def regress_joints(self, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "J 3"]:
         """Joint positions as the fixed linear function of `vertices` `(V, 3)`; shape `(J, 3)`,
         in the units and frame of `vertices`."""
         return jnp.einsum(
@@ -109,8 +109,8 @@ class Rig(eqx.Module):
 
     def skin(
         self,
-        vertices: Float[Array, "V 3"],
-        transforms: Float[Array, "J 4 4"],
+        vertices: Float[ArrayLike, "V 3"],
+        transforms: Float[ArrayLike, "J 4 4"],
         *,
         method: str = "lbs",
     ) -> Float[Array, "V 3"]:

@@ -31,6 +31,25 @@ def getkey():
     return _getkey
 
 
+@pytest.fixture(autouse=True)
+def _bad_input_unchecked(request):
+    """Tests marked `bad_input` feed wrong shapes and types on purpose, to check the library's own
+    `ValueError`s (what a user sees). The suite type-checks the package at run time
+    (`--jaxtyping-packages` in pyproject.toml), which would reject such input first, so these tests
+    run with the run-time checks switched off (jaxtyping reads the switch at every call)."""
+    if request.node.get_closest_marker("bad_input") is None:
+        yield
+        return
+    import jaxtyping
+
+    old = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", old)
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
     """Drops JAX's compiled programs after every test module.

@@ -174,6 +174,7 @@ def test_evaluate_grad_vmap_and_no_recompile(body, getkey):
     assert v1.shape == (4, 13380, 3) and not np.allclose(v1, v2)
 
 
+@pytest.mark.bad_input
 def test_phenotype_ranges_are_checked_per_entry(body):
     """Regression: phenotype_vector accepted gender=1.5 / height=180, evaluate's range error named
     no entry (and used age's bound for all), and under jit nothing was checked."""
@@ -206,6 +207,7 @@ def _with(p, i, x):
     return q
 
 
+@pytest.mark.bad_input
 def test_bad_inputs(body):
     with pytest.raises(ValueError, match="phenotypes"):
         bp.rest_shape(body, np.zeros(10))

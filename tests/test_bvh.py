@@ -208,6 +208,7 @@ def test_malformed_files_raise_with_file_and_line(tmp_path, text, pattern):
         bp.read_bvh(_write(tmp_path, text))
 
 
+@pytest.mark.bad_input
 def test_container_validation_and_writer_args(tmp_path):
     b = bp.read_bvh(_write(tmp_path, SMALL))
     with pytest.raises(ValueError, match=r"depth-first order"):

@@ -138,6 +138,7 @@ def test_depth_to_scan_round_trip_padding_and_truth():
     np.testing.assert_allclose(q, np.asarray(small.points), atol=1e-12)
 
 
+@pytest.mark.bad_input
 def test_bad_input_errors():
     cam = DepthCamera([0.0, -2.0, 0.0], [0.0, 0.0, 0.0], width=32, height=24)
     with pytest.raises(ValueError, match="target"):
@@ -233,6 +234,7 @@ def test_fit_depth_recovers_shape_and_pose(problem):
     assert np.all(np.asarray(sol.stats["valid_fraction"]) > 0.8)
 
 
+@pytest.mark.bad_input
 def test_fit_depth_bad_input():
     tmpl = registration_template()
     v0 = jnp.asarray(tmpl.vertices, jnp.float64)

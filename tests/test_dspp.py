@@ -205,6 +205,7 @@ def test_pca_baselines():
     np.testing.assert_allclose(proj.std(0, ddof=1), np.asarray(pca.stddev), rtol=1e-5)
 
 
+@pytest.mark.bad_input
 def test_bad_inputs(tmp_path, getkey):
     cfg = _cfg()
     with pytest.raises(ValueError, match=r"`data` must have shape \(\*, \*, 3\)"):

@@ -131,6 +131,7 @@ def test_latent_fit_recovers_decoded_shape(setup):
     assert float(sol.stats["landmark_rms"]) < 1e-5 * float(prior.scale)
 
 
+@pytest.mark.bad_input
 def test_fitting_errors(setup):
     model, prior, idx = setup["model"], setup["prior"], setup["idx"]
     t = setup["meshes"][0][idx]

@@ -385,6 +385,7 @@ def test_float32_inputs_stay_float32():
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.bad_input
 def test_validation_errors():
     v = np.array(ICO.vertices)
     bad = v.copy()

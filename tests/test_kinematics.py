@@ -150,6 +150,7 @@ def test_kinematic_levels():
         ("abc", "sequence"),
     ],
 )
+@pytest.mark.bad_input
 def test_bad_parents(bad, match):
     with pytest.raises(ValueError, match=match):
         validate_parents(bad)
@@ -164,6 +165,7 @@ def test_validate_parents_accepts_numpy():
     assert validate_parents([-1, np.int64(0)]) == (-1, 0)
 
 
+@pytest.mark.bad_input
 def test_wrong_shapes():
     parents = (-1, 0, 1)
     R, h, tr = np.broadcast_to(np.eye(3), (3, 3, 3)), np.zeros((3, 3)), np.zeros(3)
@@ -233,6 +235,7 @@ def random_similarity(rng):
     )
 
 
+@pytest.mark.bad_input
 def test_similarity_algebra():
     rng = np.random.default_rng(0)
     a, b = random_similarity(rng), random_similarity(rng)
@@ -289,6 +292,7 @@ def test_umeyama_with_noise_weights_and_rigid():
     np.testing.assert_allclose(est.apply(src), rigid.apply(src), atol=1e-10)
 
 
+@pytest.mark.bad_input
 def test_umeyama_is_reflection_safe_and_vmaps():
     rng = np.random.default_rng(3)
     src = rng.normal(size=(30, 3))

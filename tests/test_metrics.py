@@ -122,6 +122,7 @@ def test_known_cases():
     assert m["coverage"] == 1 / 12 and m["one_nna"] == pytest.approx(23 / 24)
 
 
+@pytest.mark.bad_input
 def test_metric_errors():
     a = np.zeros((3, 4, 3))
     mvd = bp.mean_vertex_distance_metric
@@ -197,6 +198,7 @@ def test_joint_limits_box_and_wraparound():
     assert bp.dspp.joint_limit_violation(alt, lim, order=ORDER) == 0.0
 
 
+@pytest.mark.bad_input
 def test_joint_limit_errors():
     e = np.zeros((5, 20, 3))
     with pytest.raises(ValueError, match="`quantile` must lie in"):

@@ -246,6 +246,7 @@ def test_find_mocap_dir(tmp_path, monkeypatch):
     assert find_mocap_dir() is None
 
 
+@pytest.mark.bad_input
 def test_skeleton_kind_rejects_unknown(tmp_path, body):
     b = bp.Bvh(("a",), (-1,), np.zeros((1, 3)), (("Xrotation",),), np.full((1, 3), np.nan), 0.1,
                np.zeros((2, 1)))  # fmt: skip
@@ -312,6 +313,7 @@ def _round_trip(body, e):
     return pose, back, R, R_e, g
 
 
+@pytest.mark.bad_input
 def test_rig_pose_round_trip_jit_vmap(body, getkey):
     n = 5
     k1, k2 = jax.random.split(getkey())
@@ -423,6 +425,7 @@ def test_load_real_clips_frame_rates_and_skips(body):
 # pictures
 
 
+@pytest.mark.bad_input
 def test_render_poses(tmp_path, body):
     e = np.zeros((2, 20, 3))
     e[1, POSE_JOINTS.index("LeftArm"), 1] = 1.0

@@ -326,6 +326,7 @@ def test_variants(setup):
     )
 
 
+@pytest.mark.bad_input
 def test_prepared_template(setup):
     """`prepare_nrd` once, then pass the NRDPrep: the same numbers as preparing on the fly."""
     tmpl, truth, scan, init, out = setup
@@ -354,6 +355,7 @@ def _replace(scan, **fields):
     return bp.registration.Scan(**kw)
 
 
+@pytest.mark.bad_input
 def test_bad_inputs(setup):
     tmpl, truth, scan, init, out = setup
     with pytest.raises(ValueError, match="init_vertices"):

@@ -130,6 +130,7 @@ def test_posture_rig_carries_its_precomputation(toy):
     assert posture_rig(model, factorize=False).nh_solver is None
 
 
+@pytest.mark.bad_input
 def test_learn_normalized_and_errors(toy):
     model, rest, posed, poses = toy
     m, norm = learn_normalized(posed, model, "nh", poses=poses, n_components=2)

@@ -190,6 +190,7 @@ def test_euler_gimbal_lock_is_finite(order):
 
 
 @pytest.mark.parametrize("bad", ["xyz", "XXY", "XY", "ABC", 3, "XYZZ"])
+@pytest.mark.bad_input
 def test_euler_bad_order(bad):
     with pytest.raises(ValueError, match="order"):
         euler_to_matrix(jnp.zeros(3), bad)
@@ -366,6 +367,7 @@ def test_dispatch_errors():
         (project_to_rotation, jnp.zeros(3)),
     ],
 )
+@pytest.mark.bad_input
 def test_wrong_shapes_raise(fn, bad):
     with pytest.raises(ValueError, match="must have shape"):
         fn(bad)

@@ -175,6 +175,7 @@ def test_simulate_scans_batches_and_pads(subject, body):
         registration.pad_scans([])
 
 
+@pytest.mark.bad_input
 def test_config_and_input_errors(subject):
     v, f, lm, names = subject
     with pytest.raises(ValueError, match="`noise_sigma`"):
@@ -213,6 +214,7 @@ def _scan(points, normals=None, mask=None, names=("a", "b")):
     )
 
 
+@pytest.mark.bad_input
 def test_check_scan_errors():
     rng = np.random.default_rng(0)
     body_pts = rng.uniform([-0.3, -0.2, -0.85], [0.3, 0.2, 0.85], (500, 3))
@@ -385,6 +387,7 @@ def test_registration_survives_hard_scans(subject, tmpl, size_space):
     assert (e_nrd < 10.0).mean() > 0.5, (e_nrd < 10.0).mean()
 
 
+@pytest.mark.bad_input
 def test_registration_rejects_bad_scans(subject, tmpl, size_space):
     scan, _ = registration.simulate_scan(
         *subject, registration.ScannerConfig(n_points=500), key=jr.PRNGKey(6)
@@ -402,6 +405,7 @@ def test_registration_rejects_bad_scans(subject, tmpl, size_space):
             registration.nrd(init, bad, tmpl)
 
 
+@pytest.mark.bad_input
 def test_zero_point_scan_rejected_by_every_entry_point(subject, tmpl, size_space):
     """Regression: a scan with P = 0 points failed inside numpy ("cannot reshape array of size 0
     into shape (0,3)"); every entry point taking scans names the argument and what it expects."""

@@ -109,6 +109,7 @@ def test_dqs_antipodal_blend_and_volume():
     assert np.linalg.norm(lbs_j(x, idx, w, T)) < 0.2
 
 
+@pytest.mark.bad_input
 def test_transform_to_dual_quaternion():
     rng = np.random.default_rng(3)
     T = rigid(rng)
@@ -161,6 +162,7 @@ def test_vmap_over_bodies():
         )
 
 
+@pytest.mark.bad_input
 def test_dense_weights_to_topk():
     rng = np.random.default_rng(7)
     W = rng.random((10, 6))
@@ -189,6 +191,7 @@ def test_dense_weights_to_topk():
         dense_weights_to_topk(W[0], 2)
 
 
+@pytest.mark.bad_input
 def test_wrong_inputs_raise():
     _, x, idx, w, _ = setup(8)
     T = np.broadcast_to(np.eye(4), (J, 4, 4))

@@ -180,6 +180,7 @@ def test_gradients_match_finite_differences(model, getkey):
     assert np.all(np.isfinite(gp0))
 
 
+@pytest.mark.bad_input
 def test_input_validation(model):
     with pytest.raises(ValueError, match="shape_coeffs"):
         evaluate(model, jnp.zeros(6), jnp.zeros((4, 3)))
@@ -459,6 +460,7 @@ def test_load_file_written_before_the_rig_module(tmp_path):
         assert z.read("leaves.eqx") == old_leaves
 
 
+@pytest.mark.bad_input
 def test_learn_rig_argument_and_deprecated_spellings(model, getkey):
     meshes, _ = _low_rank_meshes(model, getkey(), n=6)
     ref = learn(meshes, model.faces, n_components=2, rig=model.rig)
@@ -764,6 +766,7 @@ def test_mpii_malformed(tiny, tmp_path):
         load_mpii_humanshape(tmp_path / "nope")
 
 
+@pytest.mark.bad_input
 def test_evaluate_subset_equals_full_rows(model, getkey):
     c = jr.normal(getkey(), (5,))
     pose = 0.4 * jr.normal(getkey(), (4, 3))

@@ -90,6 +90,7 @@ def test_fitting_error_exact_on_own_vertices():
     assert bool(np.all(fe.valid)) and float(np.max(fe.error_mm)) < 1e-9
 
 
+@pytest.mark.bad_input
 def test_fitting_error_bad_input():
     verts, faces, normals, scan = _scene()
     with pytest.raises(ValueError, match="Scan"):
@@ -104,6 +105,7 @@ def test_fitting_error_bad_input():
         fitting_error(verts, scan)  # not the template's vertex count and no faces
 
 
+@pytest.mark.bad_input
 def test_gt_error_and_mean_vertex_error():
     a = np.zeros((2, 4, 3))
     b = a.copy()

@@ -296,6 +296,7 @@ def test_fit_similarity(setup):
         fit_similarity(model.mean[tmpl.landmark_index], few)
 
 
+@pytest.mark.bad_input
 def test_input_validation(setup):
     tmpl, model, scan = setup["tmpl"], setup["model"], setup["scans"][0]
     few = eqx.tree_at(lambda s: s.landmark_mask, scan, scan.landmark_mask.at[3:].set(False))

@@ -134,6 +134,7 @@ def test_error_bad_faces_array(faces, match):
         Topology.from_faces(faces)
 
 
+@pytest.mark.bad_input
 def test_error_bad_n_vertices():
     with pytest.raises(ValueError, match="`n_vertices` must be an int"):
         Topology.from_faces(np.array([[0, 1, 2]]), n_vertices=3.0)

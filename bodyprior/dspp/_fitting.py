@@ -119,7 +119,7 @@ class PriorResidual(eqx.Module):
     reconstruction_weight: Float[Array, ""]
     reconstruction: bool = eqx.field(static=True)
 
-    def __call__(self, x: Float[Array, "*item 3"]) -> Float[Array, " R"]:
+    def __call__(self, x: Float[ArrayLike, "*item 3"]) -> Float[Array, " R"]:
         z = self.prior.encode(x)
         r = (jnp.sqrt(self.weight) * _sqrt_nll(self.prior.latent_logit(z)))[None]
         if not self.reconstruction:
@@ -129,7 +129,7 @@ class PriorResidual(eqx.Module):
         n = self.prior.mean.shape[0]
         return jnp.concatenate([r, jnp.sqrt(self.reconstruction_weight / n) * d])
 
-    def energy(self, x: Float[Array, "*item 3"]) -> Float[Array, ""]:
+    def energy(self, x: Float[ArrayLike, "*item 3"]) -> Float[Array, ""]:
         """`||r(x)||²`."""
         r = self(x)
         return jnp.sum(r * r)

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._validate import check_array, is_tracer
 
@@ -71,7 +71,7 @@ class PReLUMLP(eqx.Module):
         )
         self.activations = tuple(PReLU(dtype=dtype) for _ in sizes[1:-1])
 
-    def __call__(self, x: Float[Array, " n_in"]) -> Float[Array, " n_out"]:
+    def __call__(self, x: Float[ArrayLike, " n_in"]) -> Float[Array, " n_out"]:
         for layer, act in zip(self.layers[:-1], self.activations):
             x = act(layer(x))
         return self.layers[-1](x)
@@ -108,7 +108,7 @@ class SNMLP(eqx.Module):
         )
         self.final_relu = final_relu
 
-    def __call__(self, x: Float[Array, " n_in"], state: eqx.nn.State, *, inference=None):
+    def __call__(self, x: Float[ArrayLike, " n_in"], state: eqx.nn.State, *, inference=None):
         n = len(self.layers)
         for i, layer in enumerate(self.layers):
             x, state = layer(x, state, inference=inference)
@@ -125,7 +125,7 @@ class LatentDiscriminator(eqx.Module):
     def __init__(self, latent_dim: int, hidden: Sequence[int], *, key, dtype=jnp.float32):
         self.mlp = SNMLP((latent_dim, *hidden, 1), key=key, dtype=dtype)
 
-    def __call__(self, z: Float[Array, " d"], state, *, inference=None):
+    def __call__(self, z: Float[ArrayLike, " d"], state, *, inference=None):
         y, state = self.mlp(z, state, inference=inference)
         return y[0], state
 
@@ -145,7 +145,7 @@ class PointNetDiscriminator(eqx.Module):
         self.point_mlp = SNMLP((3, *point_hidden), key=k1, final_relu=True, dtype=dtype)
         self.head = SNMLP((point_hidden[-1], *head_hidden, 1), key=k2, dtype=dtype)
 
-    def __call__(self, points: Float[Array, "V 3"], state, *, inference=None):
+    def __call__(self, points: Float[ArrayLike, "V 3"], state, *, inference=None):
         # The power iteration does not depend on the input, so the state leaving the vmap over
         # points is unbatched (out_axes None), exactly one iteration per call.
         feats, state = jax.vmap(
@@ -164,7 +164,7 @@ class MLPDiscriminator(eqx.Module):
     def __init__(self, n_in: int, hidden: Sequence[int], *, key, dtype=jnp.float32):
         self.mlp = SNMLP((n_in, *hidden, 1), key=key, dtype=dtype)
 
-    def __call__(self, x: Float[Array, " n"], state, *, inference=None):
+    def __call__(self, x: Float[ArrayLike, " n"], state, *, inference=None):
         y, state = self.mlp(x, state, inference=inference)
         return y[0], state
 
@@ -306,7 +306,7 @@ class _AEGANPrior(eqx.Module):
         _check_input(x, "x", tuple(self.mean.shape))
         return self.encoder(self._normalise(x))
 
-    def decode(self, z: Float[Array, " d"]) -> Array:
+    def decode(self, z: Float[ArrayLike, " d"]) -> Array:
         """Item (`(V, 3)` metres or `(20, 3)` radians) decoded from a code `(d,)`."""
         _check_input(z, "z", (self.latent_dim,))
         return self._denormalise(self.decoder(jnp.asarray(z).astype(self.mean.dtype)))
@@ -323,7 +323,7 @@ class _AEGANPrior(eqx.Module):
         """One random item: `decode(generator(n))` with `n ~ N(0, I)`. Jittable; vmap over keys."""
         return self._denormalise(self.decoder(self.generate(key)))
 
-    def latent_logit(self, z: Float[Array, " d"]) -> Float[Array, ""]:
+    def latent_logit(self, z: Float[ArrayLike, " d"]) -> Float[Array, ""]:
         """Discriminator logit of a code (higher = judged more real; `sigmoid` = probability).
         Uses the trained spectral-norm state (inference mode); differentiable in `z`."""
         _check_input(z, "z", (self.latent_dim,))
@@ -365,7 +365,7 @@ class GeometryGAN(eqx.Module):
     disc_state: eqx.nn.State
     mean: Float[Array, "*item 3"]
     scale: Float[Array, ""]
-    centre: Float[Array, 3]
+    centre: Float[Array, " 3"]
     radius: Float[Array, ""]
     kind: str = eqx.field(static=True)
     config: DSPPConfig = eqx.field(static=True)
@@ -390,7 +390,7 @@ class GeometryGAN(eqx.Module):
         return y
 
 
-def geometry_disc_input(kind: str, mean, scale, centre, radius, u: Float[Array, " D"]) -> Array:
+def geometry_disc_input(kind: str, mean, scale, centre, radius, u: Float[ArrayLike, " D"]) -> Array:
     """Discriminator input of a geometry GAN from normalised geometry `u = (x - mean) / scale`
     (flattened): vertices relative to the mean shape's centroid in units of its RMS radius `(V, 3)`
     for shapes, `u` itself for poses."""

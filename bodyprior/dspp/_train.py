@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import optax
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 from tqdm.auto import tqdm
 
 from .._solution import RESULTS, Solution, _check
@@ -311,7 +311,7 @@ def _train(
 
 
 def train_shape_prior(
-    data: Float[Array, "N V 3"],
+    data: Float[ArrayLike, "N V 3"],
     *,
     key,
     config: DSPPConfig = DSPPConfig(),
@@ -343,7 +343,7 @@ def train_shape_prior(
 
 
 def train_pose_prior(
-    data: Float[Array, "N 20 3"],
+    data: Float[ArrayLike, "N 20 3"],
     *,
     key,
     config: DSPPConfig = DSPPConfig(),

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._render import _rasterize_screen
 from .._validate import check_array
@@ -61,7 +61,7 @@ class DepthCamera(eqx.Module):
     `height`, `fx`, `fy`, `cx`, `cy`.
     """
 
-    eye: Float[Array, 3]
+    eye: Float[Array, " 3"]
     rotation: Float[Array, "3 3"]
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
@@ -111,15 +111,15 @@ class DepthCamera(eqx.Module):
         """`(height, width)` in pixels."""
         return self.height, self.width
 
-    def to_camera(self, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    def to_camera(self, points: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
         """World points `(N, 3)` -> camera-frame points `(N, 3)` (z = depth)."""
         return (jnp.asarray(points) - self.eye) @ self.rotation.T
 
-    def to_world(self, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    def to_world(self, points: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
         """Camera-frame points `(N, 3)` -> world points `(N, 3)`."""
         return jnp.asarray(points) @ self.rotation + self.eye
 
-    def project(self, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    def project(self, points: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
         """World points `(N, 3)` -> `(u, v, z)`: image coordinates (pixels) and depth (metres)."""
         c = self.to_camera(points)
         z = c[:, 2]
@@ -134,7 +134,7 @@ class DepthCamera(eqx.Module):
         c = jnp.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], -1)
         return self.to_world(c)
 
-    def pixel_points(self, depth: Float[Array, "H W"]) -> Float[Array, "H W 3"]:
+    def pixel_points(self, depth: Float[ArrayLike, "H W"]) -> Float[Array, "H W 3"]:
         """Back-projects every pixel centre of a depth image to the world, shape `(H, W, 3)`."""
         h, w = self.size
         ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")

@@ -36,7 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import vertex_normals
 from .._validate import check_array, is_tracer
@@ -197,10 +197,10 @@ def _fitting_error_args(vertices, scan, faces, max_dist, max_angle_deg, search, 
 
 
 def fitting_error(
-    vertices: Float[Array, "V 3"],
+    vertices: Float[ArrayLike, "V 3"],
     scan,
     *,
-    faces: Int[Array, "F 3"] | None = None,
+    faces: Int[ArrayLike, "F 3"] | None = None,
     max_dist: float = 0.05,
     max_angle_deg: float = 60.0,
     search: str = "nearest",
@@ -234,10 +234,10 @@ def fitting_error(
 
 
 def fitting_error_batch(
-    vertices: Float[Array, "N V 3"],
+    vertices: Float[ArrayLike, "N V 3"],
     scans,
     *,
-    faces: Int[Array, "F 3"] | None = None,
+    faces: Int[ArrayLike, "F 3"] | None = None,
     max_dist: float = 0.05,
     max_angle_deg: float = 60.0,
     search: str = "nearest",
@@ -253,7 +253,7 @@ def fitting_error_batch(
 
 
 def gt_error(
-    vertices: Float[Array, "*batch V 3"], true_vertices: Float[Array, "*batch V 3"]
+    vertices: Float[ArrayLike, "*batch V 3"], true_vertices: Float[ArrayLike, "*batch V 3"]
 ) -> Float[Array, "*batch V"]:
     """Per-vertex distance to the true corresponding vertex, millimetres.
 
@@ -422,8 +422,8 @@ def plot_cumulative_curves(
 
 def error_colormap_png(
     path: str | os.PathLike,
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
     errors_mm,
     *,
     vmax: float = 20.0,

@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 # Grid axes are clamped to this many cells (keys stay < 2^31 in int32); clamping only merges far
 # cells, which adds candidates but never loses one, so the radius search stays exact.
@@ -176,13 +176,13 @@ class _CompatibleRule(eqx.Module):
 
 
 def nearest_within(
-    queries: Float[Array, "Q 3"],
-    points: Float[Array, "P 3"],
-    mask: Bool[Array, " P"],
+    queries: Float[ArrayLike, "Q 3"],
+    points: Float[ArrayLike, "P 3"],
+    mask: Bool[ArrayLike, " P"],
     radius: float,
     *,
-    query_normals: Float[Array, "Q 3"] | None = None,
-    point_normals: Float[Array, "P 3"] | None = None,
+    query_normals: Float[ArrayLike, "Q 3"] | None = None,
+    point_normals: Float[ArrayLike, "P 3"] | None = None,
     cos_max: float | None = None,
 ) -> Int[Array, " Q"]:
     """Index of the nearest real point within `radius` of every query (`-1` where none); with

@@ -95,9 +95,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import vertex_normals
+from .._linalg import pcg
 from .._solution import RESULTS, Solution, _check
 from .._validate import check_array
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
@@ -556,46 +557,8 @@ def _system(rnd: _Round, ph, prep: NRDPrep, coarse: bool) -> _System:
 
 
 def _pcg(sys: _System, x0, rtol: float, max_steps: int):
-    """Preconditioned CG, one independent recursion per right-hand side (the 3 rows of A).
-
-    Stops when the preconditioned residual norm `sqrt(rᵀ M⁻¹ r)` of every column is at most `rtol`
-    times that at the start: with `M ≈ H` this is the error in the energy norm, so the remaining
-    energy gap is about `rtol²` of the gap at the (warm) start. Returns `(X, steps, ratio)`.
-    """
-    dot = lambda a, b: jnp.sum(a * b, axis=(0, 1))
-    tiny = jnp.finfo(x0.dtype).tiny
-    r = sys.rhs - sys.mv(x0)
-    z = sys.precondition(r)
-    rz = dot(r, z)
-    # Residuals at rounding level (a start at the minimum) count as converged: CG cannot reduce
-    # them further, and iterating on them would only add noise.
-    floor = (64 * jnp.finfo(x0.dtype).eps) ** 2 * dot(sys.rhs, sys.precondition(sys.rhs))
-    rz0 = jnp.where(rz > floor, rz, 0.0)
-
-    def ratio(rz):
-        return jnp.sqrt(
-            jnp.max(jnp.where(rz0 > 0, jnp.maximum(rz, 0.0) / jnp.maximum(rz0, tiny), 0.0))
-        )
-
-    def cond(s):
-        k, _, _, _, rz = s
-        return (k < max_steps) & (ratio(rz) > rtol)
-
-    def body(s):
-        k, x, r, p, rz = s
-        ap = sys.mv(p)
-        pap = dot(p, ap)
-        alpha = jnp.where(pap > 0, rz / jnp.where(pap > 0, pap, 1.0), 0.0)
-        x = x + alpha * p
-        r = r - alpha * ap
-        z = sys.precondition(r)
-        rz_new = dot(r, z)
-        beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
-        return k + 1, x, r, z + beta * p, rz_new
-
-    k, x, _, _, rz = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), x0, r, z, rz))
-    r = sys.rhs - sys.mv(x)  # the true residual, not the recursive one
-    return x, k, ratio(dot(r, sys.precondition(r)))
+    """[`bodyprior._linalg.pcg`][] on one round's system (columns: the 3 rows of A)."""
+    return pcg(sys.mv, sys.precondition, sys.rhs, x0, rtol=rtol, max_steps=max_steps)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -801,7 +764,7 @@ def _dtype_cast(init, arrays):
 
 
 def nrd(
-    init_vertices: Float[Array, "V 3"],
+    init_vertices: Float[ArrayLike, "V 3"],
     scan,
     template: RegistrationTemplate | NRDPrep,
     *,
@@ -856,7 +819,7 @@ def nrd(
 
 
 def nrd_batch(
-    init_vertices: Float[Array, "B V 3"],
+    init_vertices: Float[ArrayLike, "B V 3"],
     scans,
     template: RegistrationTemplate | NRDPrep,
     *,

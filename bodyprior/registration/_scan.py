@@ -55,7 +55,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from tqdm.auto import tqdm
 
 from .._validate import check_array, is_tracer
@@ -499,9 +499,9 @@ def _holes(rng, pts: np.ndarray, fraction: float, radius: float) -> np.ndarray:
 
 
 def simulate_scan(
-    vertices: Float[Array, "V 3"],
-    faces: Int[Array, "F 3"],
-    landmark_positions: Float[Array, "L 3"],
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    landmark_positions: Float[ArrayLike, "L 3"],
     landmark_names: Sequence[str],
     config: ScannerConfig = ScannerConfig(),
     *,
@@ -658,9 +658,9 @@ def pad_scans(
 
 
 def simulate_scans(
-    population_vertices: Float[Array, "N V 3"],
-    faces: Int[Array, "F 3"],
-    landmark_index: Int[Array, " L"],
+    population_vertices: Float[ArrayLike, "N V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    landmark_index: Int[ArrayLike, " L"],
     landmark_names: Sequence[str],
     config: ScannerConfig = ScannerConfig(),
     n_points: int | None = None,

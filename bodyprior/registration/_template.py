@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._rig import Rig
 from .._topology import Topology
@@ -123,7 +123,9 @@ class RegistrationTemplate(eqx.Module):
         )
         return {"rig": self.rig}
 
-    def restrict(self, full_vertices: Float[Array, "*batch Vfull 3"]) -> Float[Array, "*batch V 3"]:
+    def restrict(
+        self, full_vertices: Float[ArrayLike, "*batch Vfull 3"]
+    ) -> Float[Array, "*batch V 3"]:
         """Restricts meshes in the full default-body topology to the template's vertices."""
         return jnp.asarray(full_vertices)[..., self.vertex_map, :]
 

@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
 from ..registration._evaluate import fitting_error_batch
@@ -136,7 +136,7 @@ def body_parts(template: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, .
 
 
 def registration_gate(
-    vertices: Float[Array, "N V 3"],
+    vertices: Float[ArrayLike, "N V 3"],
     scans,
     template: RegistrationTemplate,
     *,
@@ -192,7 +192,7 @@ def registration_gate(
 
 
 def calibrate_gate(
-    reference_meshes: Float[Array, "N V 3"],
+    reference_meshes: Float[ArrayLike, "N V 3"],
     scans,
     template: RegistrationTemplate,
     *,

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
@@ -277,13 +277,13 @@ def _correspondences(verts, normals, scan_points, scan_normals, scan_mask, exclu
 
 
 def compatible_correspondences(
-    verts: Float[Array, "V 3"],
-    normals: Float[Array, "V 3"],
+    verts: Float[ArrayLike, "V 3"],
+    normals: Float[ArrayLike, "V 3"],
     scan: Scan,
     *,
     max_dist: float = 0.05,
     max_angle_deg: float = 60.0,
-    exclude_mask: Bool[Array, " V"] | None = None,
+    exclude_mask: Bool[ArrayLike, " V"] | None = None,
 ) -> tuple[Int[Array, " V"], Float[Array, " V"]]:
     """Template -> scan correspondences: the nearest compatible scan point of every vertex.
 
@@ -350,7 +350,7 @@ def _umeyama_masked(src, dst, mask):
     return umeyama(src * mask[:, None], jnp.where(mask[:, None] > 0, dst, 0.0), weights=mask)
 
 
-def fit_similarity(template_landmarks: Float[Array, "L 3"], scan: Scan) -> Similarity:
+def fit_similarity(template_landmarks: Float[ArrayLike, "L 3"], scan: Scan) -> Similarity:
     """Similarity `x -> s R x + t` taking template landmarks onto the scan's present landmarks.
 
     Umeyama/Horn least squares over the landmarks with `scan.landmark_mask` True (humanshape
@@ -835,7 +835,7 @@ def fit_sscape(
     template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
-    shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
+    shape_residual: Callable[[Float[ArrayLike, "V 3"]], Float[ArrayLike, " R"]] | None = None,
     init: SScapeFit | Solution | None = None,
     throw: bool = True,
 ) -> Solution:
@@ -889,7 +889,7 @@ def fit_sscape_batch(
     template: RegistrationTemplate,
     *,
     config: FitConfig = FitConfig(),
-    shape_residual: Callable[[Float[Array, "V 3"]], Float[Array, " R"]] | None = None,
+    shape_residual: Callable[[Float[ArrayLike, "V 3"]], Float[ArrayLike, " R"]] | None = None,
     init: SScapeFit | Solution | None = None,
     devices=None,
     chunk_size: int | None = None,

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .._kinematics import Similarity, umeyama
 from .._rig import Rig
@@ -67,9 +67,9 @@ def _gpa(meshes, reference, scale: bool, n_iter: int, tol):
 
 
 def procrustes_align(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     *,
-    reference: Float[Array, "V 3"] | None = None,
+    reference: Float[ArrayLike, "V 3"] | None = None,
     scale: bool = False,
     n_iter: int = 100,
     tol: float = 1e-10,
@@ -160,7 +160,7 @@ _LEGACY_RIG = {  # learn()'s former rig keywords -> Rig fields
 
 
 def learn(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     faces,
     *,
     n_components: int | None = None,
@@ -331,7 +331,9 @@ M_TO_MM = 1000.0
 """Millimetres per metre: the quality measures report errors in mm for meshes in metres."""
 
 
-def mean_vertex_distance(a: Float[Array, "V 3"], b: Float[Array, "V 3"]) -> Float[Array, ""]:
+def mean_vertex_distance(
+    a: Float[ArrayLike, "V 3"], b: Float[ArrayLike, "V 3"]
+) -> Float[Array, ""]:
     """`D(a, b) = (1/V) sum_v ||a_v - b_v||_2`, the distance used by all quality measures, in the
     meshes' unit (the measures below convert metres to mm)."""
     return jnp.mean(jnp.linalg.norm(a - b, axis=-1))
@@ -413,7 +415,7 @@ def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
 
 
 def generalization(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     n_components: int | Sequence[int],
     *,
     n_train: int | None = None,
@@ -499,7 +501,7 @@ def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_si
 
 def specificity(
     model: SScapeModel,
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     n_components: int | Sequence[int],
     *,
     key,
@@ -566,7 +568,7 @@ def _reconstruction_kernel(mean, basis, x, ms: tuple[int, ...]):
 
 
 def reconstruction_error(
-    model, meshes: Float[Array, "N V 3"], n_components, *, align: bool = True
+    model, meshes: Float[ArrayLike, "N V 3"], n_components, *, align: bool = True
 ) -> np.ndarray:
     """Generalization to held-out meshes: each mesh is rigidly aligned to the model's mean
     (Kabsch, no scale) and projected onto the first `M` components; the error is the mean

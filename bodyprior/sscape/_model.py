@@ -12,7 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._kinematics import Similarity, forward_kinematics
 from .._rig import Rig
@@ -163,7 +163,9 @@ def _check_shape_coeffs(model: SScapeModel, shape_coeffs):
     return shape_coeffs
 
 
-def shape_vertices(model: SScapeModel, shape_coeffs: Float[Array, " Kp"]) -> Float[Array, "V 3"]:
+def shape_vertices(
+    model: SScapeModel, shape_coeffs: Float[ArrayLike, " Kp"]
+) -> Float[Array, "V 3"]:
     """Rest-pose vertices of a body shape.
 
     **Arguments:**
@@ -183,7 +185,7 @@ def shape_vertices(model: SScapeModel, shape_coeffs: Float[Array, " Kp"]) -> Flo
     return model.mean + jnp.tensordot(scaled, model.basis[:k], axes=1)
 
 
-def rest_joints(model: SScapeModel, vertices: Float[Array, "V 3"]) -> Float[Array, "J 3"]:
+def rest_joints(model: SScapeModel, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "J 3"]:
     """Joint rest positions regressed from (shaped) rest vertices, shape `(J, 3)`.
 
     **Arguments:**
@@ -213,13 +215,13 @@ def _pose_to_matrices(pose, pose_rep: str, n_joints: int):
 
 def evaluate(
     model: SScapeModel,
-    shape_coeffs: Float[Array, " Kp"],
+    shape_coeffs: Float[ArrayLike, " Kp"],
     pose: Array,
     transform: Similarity | None = None,
-    root_translation: Float[Array, 3] | None = None,
+    root_translation: Float[ArrayLike, " 3"] | None = None,
     *,
     pose_rep: str = "axis_angle",
-    subset: Int[Array, " S"] | None = None,
+    subset: Int[ArrayLike, " S"] | None = None,
 ) -> tuple[Float[Array, "V 3"], Float[Array, "J 3"]]:
     """Shapes, poses and places one body.
 

@@ -67,7 +67,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._geometry import cotangent_weights, laplacian_apply, laplacian_sparse, vertex_normals
 from .._kinematics import world_transforms
@@ -394,7 +394,7 @@ def _check_meshes(meshes, rig: PostureRig, name: str):
 
 
 def unpose_lbs(
-    vertices: Float[Array, "V 3"], pose, template, *, n_joint_iter: int = 6
+    vertices: Float[ArrayLike, "V 3"], pose, template, *, n_joint_iter: int = 6
 ) -> Float[Array, "V 3"]:
     """Inverse linear blend skinning of one posed mesh (NH step 1, see the module docstring).
 
@@ -418,7 +418,7 @@ def unpose_lbs(
 
 
 def normalize_posture_nh_batch(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     poses,
     template,
     *,
@@ -429,7 +429,7 @@ def normalize_posture_nh_batch(
     n_joint_iter: int = 6,
     rest_joints=None,
     weights: str = "cotangent",
-) -> Float[Array, "N V 3"]:
+) -> Float[np.ndarray, "N V 3"]:
     """NH posture normalization of `N` registered meshes to the rest (zero) posture.
 
     **Arguments:**
@@ -485,7 +485,9 @@ def normalize_posture_nh_batch(
     return out * scale[:, None, None]
 
 
-def normalize_posture_nh(vertices: Float[Array, "V 3"], pose, template, *, similarity=None, **kw):
+def normalize_posture_nh(
+    vertices: Float[ArrayLike, "V 3"], pose, template, *, similarity=None, **kw
+):
     """NH posture normalization of one mesh; see [`bodyprior.sscape.normalize_posture_nh_batch`][]
     for the arguments (`similarity` is one `Similarity`). **Returns:** `(V, 3)` float64."""
     sims = None
@@ -502,13 +504,13 @@ def _anchor_vertex(reference: np.ndarray) -> int:
 
 
 def normalize_posture_wsx_batch(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     template,
     *,
-    reference: Float[Array, "V 3"] | None = None,
+    reference: Float[ArrayLike, "V 3"] | None = None,
     n_iter: int = 1,
     weights: str = "cotangent",
-) -> Float[Array, "N V 3"]:
+) -> Float[np.ndarray, "N V 3"]:
     """WSX posture normalization of `N` meshes into the posture of a reference (default: their
     mean after rigid Procrustes alignment, the paper's mean shape `M`).
 
@@ -551,7 +553,7 @@ def normalize_posture_wsx_batch(
 
 
 def normalize_posture_wsx(
-    vertices: Float[Array, "V 3"], template, *, reference: Float[Array, "V 3"], **kw
+    vertices: Float[ArrayLike, "V 3"], template, *, reference: Float[ArrayLike, "V 3"], **kw
 ) -> Float[Array, "V 3"]:
     """WSX posture normalization of one mesh into the posture of `reference`; see
     [`bodyprior.sscape.normalize_posture_wsx_batch`][]. **Returns:** `(V, 3)` float64."""
@@ -561,7 +563,7 @@ def normalize_posture_wsx(
 
 
 def learn_normalized(
-    meshes: Float[Array, "N V 3"],
+    meshes: Float[ArrayLike, "N V 3"],
     template,
     method: str,
     *,
