@@ -349,7 +349,9 @@ def target_weights(
     return jnp.prod(variation_w * masks + (1.0 - masks), axis=-1)
 
 
-def macro_coefficients(body: DefaultBody, phenotypes: Float[ArrayLike, " 11"]) -> Float[Array, " T"]:
+def macro_coefficients(
+    body: DefaultBody, phenotypes: Float[ArrayLike, " 11"]
+) -> Float[Array, " T"]:
     """Weights of the 408 non-breast phenotype targets (product rule over variation weights)."""
     w = variation_weights(phenotypes, body.variation_labels).astype(body.macro_masks.dtype)
     return target_weights(w, body.macro_masks)

@@ -84,7 +84,7 @@ class _HostLU:
     def __eq__(self, other):
         return isinstance(other, _HostLU) and self._key == other._key
 
-    def solve_host(self, b: np.ndarray) -> np.ndarray:
+    def solve_host(self, b: ArrayLike) -> np.ndarray:
         """`b`: `(..., n - 1, k)` -> same shape (all leading items in one multi-column solve)."""
         b = np.asarray(b, np.float64)
         lead, k = b.shape[:-2], b.shape[-1]

@@ -64,12 +64,12 @@ class RLA(eqx.Module):
     lengths: Float[Array, "*b E"]
     angles: Float[Array, "*b E"]
 
-    def concat(self) -> Float[Array, "*b 2E"]:
+    def concat(self) -> Float[Array, "*b E2"]:
         """`[lengths, angles]` along the last axis (PanoMan's `X = [X_L; X_A]`)."""
         return jnp.concatenate([self.lengths, self.angles], axis=-1)
 
     @classmethod
-    def from_concat(cls, x: Float[ArrayLike, "*b 2E"]) -> RLA:
+    def from_concat(cls, x: Float[ArrayLike, "*b E2"]) -> RLA:
         """Inverse of [`bodyprior.panoman.RLA.concat`][]."""
         x = jnp.asarray(x)
         if x.ndim < 1 or x.shape[-1] % 2:

@@ -554,7 +554,7 @@ def normalize_posture_wsx_batch(
 
 def normalize_posture_wsx(
     vertices: Float[ArrayLike, "V 3"], template, *, reference: Float[ArrayLike, "V 3"], **kw
-) -> Float[Array, "V 3"]:
+) -> Float[np.ndarray, "V 3"]:
     """WSX posture normalization of one mesh into the posture of `reference`; see
     [`bodyprior.sscape.normalize_posture_wsx_batch`][]. **Returns:** `(V, 3)` float64."""
     return normalize_posture_wsx_batch(
