@@ -14,8 +14,14 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 import jax  # noqa: E402
 import jax.random as jr  # noqa: E402
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+# Property tests compile on their first example: no per-example deadline anywhere (a deadline
+# measures the machine's load, not the code), so the suite gives the same verdict idle or loaded.
+settings.register_profile("bodyprior", deadline=None)
+settings.load_profile("bodyprior")
 
 
 @pytest.fixture

@@ -8,12 +8,10 @@ the key numbers are finite and positive. The subprocess timeout is a hang guard 
 import ast
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = sorted((ROOT / "benchmarks").glob("*.py")) + sorted((ROOT / "experiments").glob("*.py"))
@@ -121,17 +119,7 @@ SLOW = {"dspp", "nrd", "sscape_fit", "fit_search"}
 )
 def test_benchmark_quick_runs(name, tmp_path):
     out = tmp_path / f"{name}.json"
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in [env.get("PYTHONPATH")] if p])
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / f"{name}.py"), "--quick", "--json", str(out)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=1800,  # hang guard only
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    run_script(f"benchmarks/{name}.py", "--quick", "--json", out)
     res = json.loads(out.read_text())
     assert res["mode"] == "quick"
     keys = list(KEYS[name])

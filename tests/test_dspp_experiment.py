@@ -3,11 +3,10 @@ clips, a few hundred cycles of small networks; about a minute of CPU)."""
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_script
 
 REPO = Path(__file__).resolve().parents[1]
 MOCAP = REPO.parent / "shared" / "data" / "mocap"
@@ -23,13 +22,9 @@ METHODS = ("aegan", "geomgan", "pca", "pca3sigma", "pcauniform", "train")
 @pytest.mark.skipif(not MOCAP.is_dir(), reason="needs ../shared/data/mocap")
 def test_dspp_experiment_tiny(tmp_path):
     out = tmp_path / "dspp"
-    env = {**os.environ, "MPLBACKEND": "Agg", "JAX_ENABLE_X64": "0"}
-    r = subprocess.run(
-        [sys.executable, str(REPO / "experiments" / "dspp.py"), "--quick", "--tiny", "--out",
-         str(out), "--seed", "1", "--no-progress", "--mocap", str(MOCAP)],
-        capture_output=True, text=True, env=env, timeout=900,
-    )  # fmt: skip
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    env = {**os.environ, "JAX_ENABLE_X64": "0"}
+    run_script("experiments/dspp.py", "--quick", "--tiny", "--out", out, "--seed", "1",
+               "--no-progress", "--mocap", MOCAP, env=env)  # fmt: skip
     m = json.loads((out / "metrics.json").read_text())
     assert m["mode"] == "tiny" and m["seed"] == 1
     for k in REQUIRED:

@@ -9,6 +9,7 @@ import jax.random as jr
 import numpy as np
 import pytest
 import trimesh
+from helpers import assert_jvp_matches_fd
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
@@ -188,23 +189,15 @@ def test_gradients_finite_with_zero_area_faces():
     assert all_finite(jax.jacrev(lambda x: G.face_normals(x, ICO.faces))(jnp.asarray(v)))
 
 
-def _fd_check(f, x, getkey, n_dirs=3, h=1e-6, rtol=1e-6):
-    for _ in range(n_dirs):
-        u = jr.normal(getkey(), x.shape, dtype=x.dtype)
-        _, jvp = jax.jvp(f, (x,), (u,))
-        fd = (f(x + h * u) - f(x - h * u)) / (2 * h)
-        np.testing.assert_allclose(jvp, fd, rtol=rtol, atol=rtol * float(jnp.max(jnp.abs(fd))))
-
-
 def test_dihedral_and_cot_gradients_match_finite_differences(getkey):
     x = jnp.asarray(deformed_ico(7, 0.1))
-    _fd_check(lambda y: G.dihedral_angles(y, ICO_TOPO), x, getkey)
-    _fd_check(lambda y: G.cotangent_weights(y, ICO_TOPO), x, getkey)
+    assert_jvp_matches_fd(lambda y: G.dihedral_angles(y, ICO_TOPO), x, getkey)
+    assert_jvp_matches_fd(lambda y: G.cotangent_weights(y, ICO_TOPO), x, getkey)
     v, faces, _ = grid(3, jitter=0.5)
     v[:, 2] = 0.05 * np.random.default_rng(1).normal(size=len(v))
     topo = Topology.from_faces(faces)  # open mesh: boundary edges included
-    _fd_check(lambda y: G.cotangent_weights(y, topo), jnp.asarray(v), getkey)
-    _fd_check(lambda y: G.dihedral_angles(y, topo), jnp.asarray(v), getkey)
+    assert_jvp_matches_fd(lambda y: G.cotangent_weights(y, topo), jnp.asarray(v), getkey)
+    assert_jvp_matches_fd(lambda y: G.dihedral_angles(y, topo), jnp.asarray(v), getkey)
 
 
 # ------------------------------------------------------------------------------------------------

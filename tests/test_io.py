@@ -2,7 +2,6 @@
 
 import json
 import os
-import time
 
 import numpy as np
 import pytest
@@ -223,13 +222,13 @@ def test_writer_validation(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_write_speed_body_sized(tmp_path):
+def test_write_body_sized(tmp_path):
+    # Body-sized meshes through the vectorised writers (speed is a benchmark matter, not a test's:
+    # typical ~2 ms PLY, ~15 ms OBJ on the project machine).
     v, f = _mesh(13_000, 27_000)
-    t = time.perf_counter()
     write_ply(tmp_path / "b.ply", v, f)
-    t_ply = time.perf_counter() - t
-    t = time.perf_counter()
     write_obj(tmp_path / "b.obj", v, f)
-    t_obj = time.perf_counter() - t
-    # Generous bounds (CI machines are slow); typical: ~2 ms PLY, ~15 ms OBJ.
-    assert t_ply < 0.25 and t_obj < 1.0
+    for name in ("b.ply", "b.obj"):
+        v2, f2, _ = read_mesh(tmp_path / name)
+        np.testing.assert_allclose(v2, v, rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(f2, f)

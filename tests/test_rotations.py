@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import central_difference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -264,10 +265,6 @@ def test_near_pi(eps):
     assert np.all(np.isfinite(J))
 
 
-def _fd_jvp(f, x, v, h=1e-6):
-    return (f(x + h * v) - f(x - h * v)) / (2 * h)
-
-
 @functools.partial(jax.jit, static_argnums=0)
 def _jvp(f, x, v):
     return jax.jvp(f, (x,), (v,))
@@ -287,29 +284,31 @@ _EULER_FNS = {o: functools.partial(euler_to_matrix, order=o) for o in EULER_ORDE
 def test_jvps_against_finite_differences(aa, v):
     aa, v = jnp.asarray(aa), jnp.asarray(v)
     _, jvp = _jvp(aa2R, aa, v)
-    np.testing.assert_allclose(jvp, _fd_jvp(aa2R, aa, v), atol=1e-7)
+    np.testing.assert_allclose(jvp, central_difference(aa2R, aa, v), atol=1e-7)
 
     R = aa2R(aa)
 
     _, jvp = _logmap_jvp(R, jnp.zeros(3), v)
     np.testing.assert_allclose(
-        jvp, _fd_jvp(lambda w: R2aa(aa2R(w) @ R), jnp.zeros(3), v), atol=1e-6
+        jvp, central_difference(lambda w: R2aa(aa2R(w) @ R), jnp.zeros(3), v), atol=1e-6
     )
 
     q = aa2q(aa)
     _, jvp = _jvp(q2R, q, jnp.concatenate([v, v[:1]]))
-    np.testing.assert_allclose(jvp, _fd_jvp(q2R, q, jnp.concatenate([v, v[:1]])), atol=1e-7)
+    np.testing.assert_allclose(
+        jvp, central_difference(q2R, q, jnp.concatenate([v, v[:1]])), atol=1e-7
+    )
 
     d6 = matrix_to_sixd(R) + 0.1
     v6 = jnp.concatenate([v, -v])
     _, jvp = _jvp(sixd_to_matrix, d6, v6)
-    np.testing.assert_allclose(jvp, _fd_jvp(sixd_to_matrix, d6, v6), atol=1e-6)
+    np.testing.assert_allclose(jvp, central_difference(sixd_to_matrix, d6, v6), atol=1e-6)
 
     for order in ("ZYX", "XZX"):
         e = R2e(R, order)
         f = _EULER_FNS[order]
         _, jvp = _jvp(f, e, v)
-        np.testing.assert_allclose(jvp, _fd_jvp(f, e, v), atol=1e-7)
+        np.testing.assert_allclose(jvp, central_difference(f, e, v), atol=1e-7)
 
 
 def test_float32_is_preserved_and_finite():
