@@ -235,7 +235,9 @@ def dihedral_angles(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Fl
     So `θ = 0` for a flat hinge, `θ > 0` for a **convex** fold (a closed convex surface has all
     angles positive) and `θ < 0` for a concave one; `|θ|` is the angle between the two face normals,
     i.e. `π` minus the interior (solid-side) dihedral angle. The value does not depend on which face
-    is called `s`. This is the convention of PanoMan / discrete shells (scikit-shapes, GOAST).
+    is called `s`. This is the discrete-shells convention (Fröhlich & Botsch, scikit-shapes,
+    GOAST). PanoMan prints the *interior* angle `ψ = π − θ` instead:
+    [`bodyprior.panoman.interior_dihedral_angles`][], so its relative angle is `−(θ − θ_r)`.
 
     **Arguments:**
 
