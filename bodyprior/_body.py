@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._kinematics import forward_kinematics
-from ._rig import Rig
+from ._rig import Rig, RigHolder
 from ._rotations import rotation_shape, rotation_to_matrix
 from ._validate import check_array, check_range, is_tracer
 from .assets import load_asset
@@ -161,7 +161,7 @@ class BonePlacement(eqx.Module):
     roll: Float[Array, " J"]
 
 
-class DefaultBody(eqx.Module):
+class DefaultBody(RigHolder):
     """The embedded MakeHuman default body (CC0), as a JAX PyTree.
 
     Build it with [`bodyprior.load_default_body`][]. Arrays are leaves; labels and the bone tree are
@@ -206,18 +206,6 @@ class DefaultBody(eqx.Module):
     @property
     def n_vertices(self) -> int:
         return self.template.shape[0]
-
-    @property
-    def n_joints(self) -> int:
-        return self.rig.n_joints
-
-    @property
-    def parents(self) -> tuple[int, ...]:
-        return self.rig.parents
-
-    @property
-    def joint_names(self) -> tuple[str, ...]:
-        return self.rig.joint_names
 
 
 def _dense_sparse(ptr, idx, val, n_vertices) -> np.ndarray:

@@ -132,3 +132,26 @@ class Rig(eqx.Module):
             parents=self.parents,
             joint_names=self.joint_names,
         )
+
+
+class RigHolder(eqx.Module):
+    """Base of the Modules that carry a [`bodyprior.Rig`][] as their `rig` field (the default body,
+    the S-SCAPE model, the registration template): the skeleton's counts and names, read from
+    it."""
+
+    rig: eqx.AbstractVar[Rig]
+
+    @property
+    def n_joints(self) -> int:
+        """Number of joints `J`."""
+        return self.rig.n_joints
+
+    @property
+    def parents(self) -> tuple[int, ...]:
+        """Parent index of each joint (`-1` for the root)."""
+        return self.rig.parents
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Joint names, in joint order."""
+        return self.rig.joint_names

@@ -20,8 +20,7 @@ from bodyprior.registration import (
     registration_template,
     render_depth,
 )
-from bodyprior.sscape import DepthFitConfig, fit_depth
-from bodyprior.sscape._fit import FitConfig
+from bodyprior.sscape import DepthFitConfig, FitConfig, fit_depth
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
+from bodyprior import Topology
 from bodyprior import _geometry as G
-from bodyprior._topology import Topology
 
 ICO = trimesh.creation.icosphere(subdivisions=1)  # 42 vertices, 80 faces
 ICO_TOPO = Topology.from_faces(ICO.faces)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyprior._io import (
+from bodyprior import (
     atomic_open,
     atomic_write_bytes,
     atomic_write_json,

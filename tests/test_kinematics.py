@@ -9,15 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from bodyprior._kinematics import (
+from bodyprior import (
     Similarity,
+    axis_angle_to_matrix,
     forward_kinematics,
     kinematic_levels,
     umeyama,
     validate_parents,
     world_transforms,
 )
-from bodyprior._rotations import axis_angle_to_matrix
 
 SETTINGS = settings(deadline=None, max_examples=25)
 

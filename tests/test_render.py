@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyprior._render import (
+from bodyprior import (
     contact_sheet,
     figure_with_colorbar,
     mesh_bounds,

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy.spatial.transform import Rotation
 
-from bodyprior._rotations import (
+from bodyprior import (
     EULER_ORDERS,
     ROTATION_REPS,
     axis_angle_to_matrix,

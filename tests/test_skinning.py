@@ -9,9 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from bodyprior._kinematics import forward_kinematics
-from bodyprior._rotations import axis_angle_to_matrix
-from bodyprior._skinning import dense_weights_to_topk, dqs, lbs, transform_to_dual_quaternion
+from bodyprior import (
+    axis_angle_to_matrix,
+    dense_weights_to_topk,
+    dqs,
+    forward_kinematics,
+    lbs,
+    transform_to_dual_quaternion,
+)
 
 SETTINGS = settings(deadline=None, max_examples=25)
 PARENTS = (-1, 0, 1, 0, 3, 2)  # small tree

@@ -14,8 +14,7 @@ from _toybody import make_toy_model
 from helpers import central_difference
 
 import bodyprior as bp
-from bodyprior._kinematics import Similarity
-from bodyprior._rotations import axis_angle_to_matrix, matrix_to_rotation
+from bodyprior import Similarity, axis_angle_to_matrix, matrix_to_rotation
 from bodyprior.sscape import (
     SScapeModel,
     compactness,

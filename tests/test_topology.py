@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from bodyprior._topology import Topology
+from bodyprior import Topology
 
 
 def grid_faces(n: int) -> np.ndarray:

@@ -33,7 +33,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._rig import Rig
+from .._rig import Rig, RigHolder
 from .._topology import Topology
 
 # Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape
@@ -41,7 +41,7 @@ from .._topology import Topology
 _HAND_WORDS = ("Hand", "Thumb", "Finger")
 
 
-class RegistrationTemplate(eqx.Module):
+class RegistrationTemplate(RigHolder):
     """The default body's rest mesh and rig, prepared for registration (see module docstring).
 
     **Fields** (V template vertices, F triangles, J joints, L landmarks):
@@ -96,18 +96,6 @@ class RegistrationTemplate(eqx.Module):
     @property
     def n_vertices(self) -> int:
         return self.vertices.shape[0]
-
-    @property
-    def n_joints(self) -> int:
-        return self.rig.n_joints
-
-    @property
-    def parents(self) -> tuple[int, ...]:
-        return self.rig.parents
-
-    @property
-    def joint_names(self) -> tuple[str, ...]:
-        return self.rig.joint_names
 
     def rig_kwargs(self) -> dict:
         """Deprecated: pass `rig=template.rig` to [`bodyprior.sscape.learn`][] instead.

@@ -15,7 +15,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._kinematics import Similarity, forward_kinematics
-from .._rig import Rig
+from .._rig import Rig, RigHolder
 from .._rotations import euler_to_matrix, rotation_to_matrix
 from .._skinning import lbs
 from .._validate import check_array, is_tracer
@@ -36,7 +36,7 @@ def _int_leaf(x):
     return jnp.asarray(x, dtype=jnp.int32)
 
 
-class SScapeModel(eqx.Module):
+class SScapeModel(RigHolder):
     """An S-SCAPE body model: a PCA shape space over a rigged template mesh.
 
     Arrays are leaves; the kinematic tree and joint names (in `rig`) are static.
@@ -88,14 +88,6 @@ class SScapeModel(eqx.Module):
                 )
 
     @property
-    def parents(self) -> tuple[int, ...]:
-        return self.rig.parents
-
-    @property
-    def joint_names(self) -> tuple[str, ...]:
-        return self.rig.joint_names
-
-    @property
     def skin_indices(self) -> Int[Array, "V Kw"]:
         return self.rig.skin_indices
 
@@ -118,10 +110,6 @@ class SScapeModel(eqx.Module):
     @property
     def n_components(self) -> int:
         return self.basis.shape[0]
-
-    @property
-    def n_joints(self) -> int:
-        return self.rig.n_joints
 
     def shape_vertices(self, shape_coeffs) -> Float[Array, "V 3"]:
         """Method form of [`bodyprior.sscape.shape_vertices`][]."""
