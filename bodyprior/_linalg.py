@@ -24,7 +24,7 @@ def pcg(
     *,
     rtol: float,
     max_steps: int,
-    rounding_scale: Float[Array, "*n k"] | None = None,
+    rounding_level: Float[Array, " k"] | None = None,
 ) -> tuple[Float[Array, "*n k"], Int[Array, ""], Float[Array, ""]]:
     """Preconditioned CG for `A X = rhs`, one independent recursion per right-hand side.
 
@@ -37,8 +37,8 @@ def pcg(
     times that at the start: with `M ≈ A` this is the error in the energy norm, so the remaining
     energy gap is about `rtol²` of the gap at the (warm) start. Residuals at rounding level (a
     start at the solution) count as converged: rounding level is `64 ε` times the preconditioned
-    norm of `rhs`, or of `rounding_scale` where that is larger — pass the terms that cancel in the
-    residual (e.g. `matvec(x0)`) when `rhs` is much smaller than them.
+    norm of `rhs`, or `64 ε · sqrt(rounding_level)` where given (per column: the squared size of
+    the terms that cancel in the residual, for systems whose `rhs` is much smaller than them).
 
     **Returns:** `(X, steps, ratio)`: the solution, the number of CG steps taken (`int32`) and the
     final ratio of the true residual's preconditioned norm to the starting one (the worst column);
@@ -53,9 +53,7 @@ def pcg(
     r = rhs - matvec(x0)
     z = precondition(r)
     rz = dot(r, z)
-    ref = dot(rhs, precondition(rhs))
-    if rounding_scale is not None:
-        ref = jnp.maximum(ref, dot(rounding_scale, precondition(rounding_scale)))
+    ref = dot(rhs, precondition(rhs)) if rounding_level is None else rounding_level
     floor = (64 * jnp.finfo(x0.dtype).eps) ** 2 * ref
     rz0 = jnp.where(rz > floor, rz, 0.0)
 

@@ -66,7 +66,13 @@ def _leaves(res: dict, key: str) -> list:
 # key numbers of each quick run (finite, > 0)
 KEYS = {
     "body_eval": ["bodyprior_ms_b1", "bodyprior_ms_per_body_b16"],
-    "panoman_decode": ["bodyprior_s", "peer_s", "speedup", "bodyprior_blend_s", "peer_blend_s"],
+    "panoman_core": [
+        "decode_s",
+        "decode_s_b16",
+        "peer_decode_s",
+        "bodyprior_blend_s",
+        "peer_blend_s",
+    ],
     "dspp": [
         "sample_pair_ms_b1",
         "sample_pair_ms_b16",
@@ -131,11 +137,12 @@ def test_benchmark_quick_runs(name, tmp_path):
             keys += ANNY_KEYS
             (diff,) = _leaves(res, "max_posed_vertex_difference_m_b16")
             assert math.isfinite(diff) and diff >= 0
-    if name == "panoman_decode":
+    if name == "panoman_core":
         # both decoders are exact on integrable input and agree on the least-squares blend
-        assert res["bodyprior_exact_err_m"] < 1e-9 and res["peer_exact_err_m"] < 1e-9
-        assert res["bodyprior_blend_max_rel_length_residual"] == pytest.approx(
-            res["peer_blend_max_rel_length_residual"], rel=1e-3
+        d = res["decimated"]
+        assert d["bodyprior_exact_err_m"] < 1e-9 and d["peer_exact_err_m"] < 1e-9
+        assert d["bodyprior_blend_max_rel_length_residual"] == pytest.approx(
+            d["peer_blend_max_rel_length_residual"], rel=1e-3
         )
     for key in keys:
         for v in _leaves(res, key):

@@ -7,6 +7,9 @@ This subpackage holds PanoMan's machinery on bodyprior's core (it imports the co
 - **The decoder g** (Appendix A): [`bodyprior.panoman.rla_decode`][] with a per-reference
   [`bodyprior.panoman.Decoder`][] — exact on integrable input, least squares with residual and
   holonomy diagnostics otherwise, differentiable and batched.
+- **The discrete-shell energy** (eqs. 6–8): [`bodyprior.panoman.shell_residuals`][] /
+  [`bodyprior.panoman.shell_energy`][] (stretch as printed, F&B or printed bending weight, wrapped
+  angles, fold guard). Its Gauss–Newton solver with constraints is not built yet.
 
 Angles follow the paper: `â = ψ − ψ_r` with `ψ` the interior dihedral angle
 ([`bodyprior.panoman.interior_dihedral_angles`][], `π − bodyprior.dihedral_angles`).
@@ -52,6 +55,8 @@ from ._rla import (
 from ._rla import (
     wrap_angle as wrap_angle,
 )
+from ._shell import shell_energy as shell_energy
+from ._shell import shell_residuals as shell_residuals
 
 __all__ = [
     "RLA",
@@ -66,5 +71,7 @@ __all__ = [
     "rla_encode_path",
     "rla_encode_unwrapped",
     "rla_targets",
+    "shell_energy",
+    "shell_residuals",
     "wrap_angle",
 ]

@@ -157,6 +157,8 @@ class Decoder(eqx.Module):
       face, the interior-edge slot joining them, whether the face is the edge's `s`);
       `tree_depth`: static int.
     - `degree`: `(F,)` interior edges per face.
+    - `frame_rounding`: `(3,)` the preconditioned squared norm of `degree ⊗ I` (the size of the
+      terms that cancel in the frame residual; sets PCG's rounding floor).
     - `fans`: `(V, K, 2)` for each vertex, the interior-edge slots and directions around its fan
       in rotational order (`-1` padded; holonomy diagnostic); `fan_ok`: `(V,)` bool, closed fans.
     """
@@ -175,6 +177,7 @@ class Decoder(eqx.Module):
     degree: Float[Array, " F"]
     fans: Int[Array, "V K 2"]
     fan_ok: Array
+    frame_rounding: Float[Array, " 3"]
     anchor_face: int = eqx.field(static=True)
     anchor_vertex: int = eqx.field(static=True)
     tree_depth: int = eqx.field(static=True)
@@ -257,6 +260,11 @@ def prepare_decoder(
     fans, fan_ok = _fans(faces, V, topology, edge_slot, s)
 
     fkey = (V, hashlib.sha1(faces.tobytes()).hexdigest())
+    dual_lu = _HostLU(_laplacian(s, t, F), anchor_face, ("dual", fkey, anchor_face), (s, t))
+    scale = np.broadcast_to(degree[:, None, None] * np.eye(3), (F, 3, 3)).reshape(F, 9)
+    keep_f = dual_lu.keep
+    z = dual_lu.solve_host(scale[keep_f][None])[0]
+    rounding = (scale[keep_f] * z).reshape(-1, 3, 3).sum(axis=(0, 1)) + 1.0  # + anchor's identity
     corners = jnp.asarray(ref[faces[anchor_face]])[None]
     frame = _face_frames(corners)[0]
     return Decoder(
@@ -282,7 +290,8 @@ def prepare_decoder(
             anchor_vertex,
             ("poisson", fkey, anchor_vertex),
         ),
-        dual=_HostLU(_laplacian(s, t, F), anchor_face, ("dual", fkey, anchor_face), (s, t)),
+        dual=dual_lu,
+        frame_rounding=jnp.asarray(rounding),
     )
 
 
@@ -423,17 +432,22 @@ def nearest_rotation(m: Float[ArrayLike, "*b 3 3"], *, n_iter: int = 12) -> Floa
         y = _inv_t3(x)
         g = jnp.sqrt(jnp.sqrt(jnp.sum(y * y, axis=(-2, -1)) / jnp.sum(x * x, axis=(-2, -1))))
         x = 0.5 * (g[..., None, None] * x + y / g[..., None, None])
-    o = jax.lax.stop_gradient(x)
-    sym = jnp.swapaxes(o, -1, -2) @ jax.lax.stop_gradient(m)
-    sym = 0.5 * (sym + jnp.swapaxes(sym, -1, -2))
-    inv = jnp.swapaxes(_inv_t3(sym), -1, -2)
-    v = jnp.broadcast_to(jnp.array([0.6, 0.48, 0.64], m.dtype), m.shape[:-1])
-    for _ in range(30):
-        v = (inv @ v[..., None])[..., 0]
-        v = v / jnp.linalg.norm(v, axis=-1, keepdims=True)
-    eye = jnp.eye(3, dtype=m.dtype)
-    fix = o @ (eye - 2.0 * v[..., :, None] * v[..., None, :])
-    return jnp.where((_det3(m) < 0)[..., None, None], fix, x)
+    neg = _det3(m) < 0
+
+    def reflected():
+        o = jax.lax.stop_gradient(x)
+        sym = jnp.swapaxes(o, -1, -2) @ jax.lax.stop_gradient(m)
+        sym = 0.5 * (sym + jnp.swapaxes(sym, -1, -2))
+        inv = jnp.swapaxes(_inv_t3(sym), -1, -2)
+        v = jnp.broadcast_to(jnp.array([0.6, 0.48, 0.64], m.dtype), m.shape[:-1])
+        for _ in range(30):
+            v = (inv @ v[..., None])[..., 0]
+            v = v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+        fix = o @ (jnp.eye(3, dtype=m.dtype) - 2.0 * v[..., :, None] * v[..., None, :])
+        return jnp.where(neg[..., None, None], fix, x)
+
+    # the guard's work only when some matrix needs it (always, under vmap)
+    return jax.lax.cond(jnp.any(neg), reflected, lambda: x)
 
 
 class DecodedMesh(eqx.Module):
@@ -537,9 +551,14 @@ def _decode(dec: Decoder, rla: RLA, align_to, frame_rtol, frame_max_steps):
 
     def solve(mv, b):
         # rounding level: the residual is a difference of O(degree) terms of the start
-        scale = dec.degree[:, None, None] * eye
         x, k, ratio = pcg(
-            mv, precond, b, eye, rtol=frame_rtol, max_steps=frame_max_steps, rounding_scale=scale
+            mv,
+            precond,
+            b,
+            eye,
+            rtol=frame_rtol,
+            max_steps=frame_max_steps,
+            rounding_level=dec.frame_rounding.astype(b.dtype),
         )
         # Far from integrable the maps H_e stray from I and the Laplacian preconditioner weakens:
         # past the PCG budget, one sparse direct solve of the same system on the host.

@@ -1,20 +1,23 @@
-"""Benchmark: the PanoMan decoder g (RLA -> vertices), bodyprior vs a scipy reference decoder.
+"""Benchmark: PanoMan's core (bodyprior.panoman); today the decoder g (RLA -> vertices), against
+a scipy reference decoder. (The shell Gauss–Newton iteration and the SPLOCS outer iteration of
+issue 13 will join this file when they are built.)
 
 Both sides do the same work in the same run, in float64: decode the RLA vectors of posed default
-bodies (13,380 vertices, 40,134 edges; `--quick`: the 6,449-vertex decimated mesh) and of a
-non-integrable blend of two of them. The peer is the reference algorithm of
-`shared/research/panoman.md` §3.5 as measured there (0.8–1.8 s per decode): connection maps from
-the same lengths and angles, frames by sparse least squares (normal equations, SuperLU, factored
-per call), SVD projection to SO(3), positions by the Poisson least squares (SuperLU, factored per
-call), anchored at the same face and vertex. It is written here from the formulas (NumPy/SciPy),
-not imported from the library, so that the library's shortcuts (pose-independent factors, the
-tree-conjugated frame solve) are measured against the plain method.
+bodies (full 13,380 vertices / 40,134 edges and the 6,449-vertex decimated mesh beside it;
+`--quick`: the decimated mesh only) and of a non-integrable blend of two of them. The peer is the
+reference algorithm of `shared/research/panoman.md` §3.5 as measured there (0.8–1.8 s per decode):
+connection maps from the same lengths and angles, frames by sparse least squares (normal equations,
+SuperLU, factored per call), SVD projection to SO(3), positions by the Poisson least squares
+(SuperLU, factored per call), anchored at the same face and vertex. It is written here from the
+formulas (NumPy/SciPy), not imported from the library, so that the library's shortcuts (pose-
+independent factors, the tree-conjugated frame solve) are measured against the plain method.
 
-Reported: median seconds per decode over repeats (bodyprior warm, compile time separately), the
-ratio, and the accuracy of both: max vertex error after rigid alignment on exact input (m), and
-the max relative length residual on the blend.
+Reported per mesh: `decode_s` (median seconds per decode over repeats, warm; compile time
+separately; the issue's goal is ≤ 0.05 s on the full body), `decode_s_b16` (per body in a
+`jax.vmap` batch of 16), the peer's time and the ratio, and the accuracy of both: max vertex
+error after rigid alignment on exact input (m), and the max relative length residual on the blend.
 
-Usage: `python benchmarks/panoman_decode.py --json out/panoman_decode.json [--repeats 5] [--quick]`.
+Usage: `python benchmarks/panoman_core.py --json out/panoman_core.json [--repeats 5] [--quick]`.
 """
 
 from __future__ import annotations
@@ -132,16 +135,7 @@ def _median(fn, repeats):
     return float(np.median(ts))
 
 
-def bench_panoman_decode(quick: bool, repeats: int) -> dict:
-    body = bp.load_default_body(dtype=np.float64)
-    faces = np.asarray(body.faces)
-    rng = np.random.default_rng(0)
-    pose = lambda: np.concatenate([np.zeros((1, 3)), 0.3 * rng.standard_normal((30, 3))])  # noqa: E731
-    rest = np.asarray(bp.evaluate(body, bp.phenotype_vector())[0])
-    posed = [np.asarray(bp.evaluate(body, bp.phenotype_vector(), pose())[0]) for _ in range(2)]
-    if quick:
-        vmap_, faces = bp.load_decimated()
-        rest, posed = rest[vmap_], [p[vmap_] for p in posed]
+def bench_decode(rest, posed, faces, repeats: int) -> dict:
     top = bp.Topology.from_faces(faces, rest.shape[0])
 
     t = time.perf_counter()
@@ -160,6 +154,12 @@ def bench_panoman_decode(quick: bool, repeats: int) -> dict:
     ours(rlas[0])
     compile_s = time.perf_counter() - t
     ours_s = _median(lambda: ours(rlas[0]), repeats)
+    batch = jax.tree.map(lambda a: jnp.stack([a] * 16), rlas[0])
+    ours_b = jax.jit(
+        jax.vmap(lambda r: pm.rla_decode(r, None, top, decoder=dec, throw=False).value.vertices)
+    )
+    jax.block_until_ready(ours_b(batch))
+    ours_b16 = _median(lambda: jax.block_until_ready(ours_b(batch)), max(1, repeats // 2)) / 16
     ours_blend = ours(blend)
     ours_blend_s = _median(lambda: ours(blend), max(1, repeats // 2))
 
@@ -193,9 +193,10 @@ def bench_panoman_decode(quick: bool, repeats: int) -> dict:
         "tree_depth": int(dec.tree_depth),
         "prepare_s": prepare_s,
         "compile_s": compile_s,
-        "bodyprior_s": ours_s,
-        "peer_s": peer_s,
-        "speedup": peer_s / ours_s,
+        "decode_s": ours_s,
+        "decode_s_b16": ours_b16,
+        "peer_decode_s": peer_s,
+        "decode_speedup": peer_s / ours_s,
         "bodyprior_exact_err_m": _kabsch_err(ours(rlas[0]).value.vertices, posed[0]),
         "peer_exact_err_m": _kabsch_err(peer_x, posed[0]),
         "bodyprior_blend_s": ours_blend_s,
@@ -209,6 +210,20 @@ def bench_panoman_decode(quick: bool, repeats: int) -> dict:
     }
 
 
+def bench_panoman_core(quick: bool, repeats: int) -> dict:
+    body = bp.load_default_body(dtype=np.float64)
+    faces = np.asarray(body.faces)
+    rng = np.random.default_rng(0)
+    pose = lambda: np.concatenate([np.zeros((1, 3)), 0.3 * rng.standard_normal((30, 3))])  # noqa: E731
+    rest = np.asarray(bp.evaluate(body, bp.phenotype_vector())[0])
+    posed = [np.asarray(bp.evaluate(body, bp.phenotype_vector(), pose())[0]) for _ in range(2)]
+    vmap_, dfaces = bp.load_decimated()
+    out = {"decimated": bench_decode(rest[vmap_], [p[vmap_] for p in posed], dfaces, repeats)}
+    if not quick:
+        out["full"] = bench_decode(rest, posed, faces, repeats)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", required=True)
@@ -217,12 +232,12 @@ def main(argv=None):
     a = ap.parse_args(argv)
     repeats = 3 if a.quick else a.repeats
     res = {
-        "benchmark": "panoman_decode",
+        "benchmark": "panoman_core",
         "mode": "quick" if a.quick else "full",
         "repeats": repeats,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "jax": jax.__version__,
-        **bench_panoman_decode(a.quick, repeats),
+        **bench_panoman_core(a.quick, repeats),
     }
     os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
     bp.atomic_write_json(a.json, res)
