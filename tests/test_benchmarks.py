@@ -67,11 +67,8 @@ def _leaves(res: dict, key: str) -> list:
 KEYS = {
     "body_eval": ["bodyprior_ms_b1", "bodyprior_ms_per_body_b16"],
     "panoman_core": [
-        "decode_s",
-        "decode_s_b16",
-        "peer_decode_s",
-        "bodyprior_blend_s",
-        "peer_blend_s",
+        f"decimated.{k}"
+        for k in ("decode_s", "decode_s_b16", "peer_decode_s", "bodyprior_blend_s", "peer_blend_s")
     ],
     "dspp": [
         "sample_pair_ms_b1",

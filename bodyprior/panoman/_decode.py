@@ -95,10 +95,12 @@ class _HostLU:
         x = self.lu.solve(m)
         return x.reshape(self.n - 1, -1, k).transpose(1, 0, 2).reshape(*lead, self.n - 1, k)
 
-    def frame_solve_host(self, H: ArrayLike, b: ArrayLike) -> np.ndarray:
+    def frame_solve_host(self, H: ArrayLike, b: ArrayLike, x0: ArrayLike, need) -> np.ndarray:
         """Direct solve of the anchored frame system `(N X)_f = deg_f X_f − Σ_{t=f} H_eᵀ X_s −
         Σ_{s=f} H_e X_t` (this factor's graph must be the dual graph; `H`: `(Ei, 3, 3)`, `b`:
-        `(F, 3, 3)`, last axis the independent columns)."""
+        `(F, 3, 3)`, last axis the independent columns) if `need`, else `x0` unchanged."""
+        if not bool(need):
+            return np.asarray(x0, np.float64)
         H, b = np.asarray(H, np.float64), np.asarray(b, np.float64)
         s, t = self.pairs
         F = self.n
@@ -561,19 +563,15 @@ def _decode(dec: Decoder, rla: RLA, align_to, frame_rtol, frame_max_steps):
             rounding_level=dec.frame_rounding.astype(b.dtype),
         )
         # Far from integrable the maps H_e stray from I and the Laplacian preconditioner weakens:
-        # past the PCG budget, one sparse direct solve of the same system on the host.
+        # past the PCG budget, one sparse direct solve of the same system on the host. (A host
+        # callback that checks the flag itself, not `lax.cond`: under `vmap` a cond runs both
+        # branches for every item.)
+        need = ratio > frame_rtol
         shape = jax.ShapeDtypeStruct(b.shape, b.dtype)
-        return jax.lax.cond(
-            ratio <= frame_rtol,
-            lambda: (x, k, ratio),
-            lambda: (
-                jax.pure_callback(
-                    dec.dual.frame_solve_host, shape, H, b, vmap_method="sequential"
-                ),
-                k,
-                jnp.zeros_like(ratio),
-            ),
+        x = jax.pure_callback(
+            dec.dual.frame_solve_host, shape, H, b, x, need, vmap_method="sequential"
         )
+        return x, k, jnp.where(need, jnp.zeros_like(ratio), ratio)
 
     X, (steps, ratio) = jax.lax.custom_linear_solve(
         matvec, rhs, lambda mv, b: _split(solve(mv, b)), symmetric=True, has_aux=True
