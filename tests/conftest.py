@@ -42,8 +42,15 @@ def _bad_input_unchecked(request):
     """Tests marked `bad_input` feed wrong shapes and types on purpose, to check the library's own
     `ValueError`s (what a user sees). The suite type-checks the package at run time
     (`--jaxtyping-packages` in pyproject.toml), which would reject such input first, so these tests
-    run with the run-time checks switched off (jaxtyping reads the switch at every call)."""
-    if request.node.get_closest_marker("bad_input") is None:
+    run with the run-time checks switched off (jaxtyping reads the switch at every call).
+
+    Tests marked `typecheck_off` (the end-to-end experiment runs, whose library calls the unit
+    tests already type-check) also run without them: the checks cost ~30 % of their time."""
+    node = request.node
+    if (
+        node.get_closest_marker("bad_input") is None
+        and node.get_closest_marker("typecheck_off") is None
+    ):
         yield
         return
     import jaxtyping

@@ -252,6 +252,7 @@ def test_fit_depth_bad_input():
 
 
 # shares the compiled fitter with the test above
+@pytest.mark.typecheck_off
 def test_experiment_quick_run(tmp_path, problem):
     sys.path.insert(0, str(ROOT / "experiments"))
     try:

@@ -158,6 +158,7 @@ def test_fitting_errors(setup):
         dspp.fit_latent_to_landmarks(prior, idx, t, latent_mean=jnp.zeros(3), latent_std=mu + 1)
 
 
+@pytest.mark.typecheck_off
 def test_experiment_quick(tmp_path):
     import importlib.util
 

@@ -16,6 +16,7 @@ def _load():
     return mod
 
 
+@pytest.mark.typecheck_off
 def test_registration_experiment_tiny(tmp_path):
     exp = _load()
     out = tmp_path / "reg"
