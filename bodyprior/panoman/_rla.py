@@ -101,9 +101,13 @@ def interior_dihedral_angles(
     return math.pi - dihedral_angles(vertices, topology)
 
 
-def _check_pair(vertices, reference, topology: Topology):
+def _check_topology(topology) -> None:
     if not isinstance(topology, Topology):
         raise ValueError(f"`topology` must be a bodyprior.Topology, got {type(topology).__name__}.")
+
+
+def _check_pair(vertices, reference, topology: Topology):
+    _check_topology(topology)
     shape = (topology.n_vertices, 3)
     check_array(vertices, "vertices", shape)
     check_array(reference, "reference", shape)
@@ -156,8 +160,7 @@ def rla_encode_path(path: Float[ArrayLike, "T V 3"], topology: Topology) -> RLA:
 
     **Returns:** an [`bodyprior.panoman.RLA`][] of `path[-1]` against `path[0]`.
     """
-    if not isinstance(topology, Topology):
-        raise ValueError(f"`topology` must be a bodyprior.Topology, got {type(topology).__name__}.")
+    _check_topology(topology)
     check_array(path, "path", (None, topology.n_vertices, 3))
     if path.shape[0] < 2:
         raise ValueError(f"`path` needs at least 2 meshes, got {path.shape[0]}.")
@@ -198,8 +201,7 @@ def rla_targets(
 ) -> tuple[Float[Array, " E"], Float[Array, " E"]]:
     """Absolute target lengths `l_r (1 + l̂)` (metres) and interior angles `ψ_r + â` (radians, not
     wrapped) of an RLA vector on a reference mesh."""
-    if not isinstance(topology, Topology):
-        raise ValueError(f"`topology` must be a bodyprior.Topology, got {type(topology).__name__}.")
+    _check_topology(topology)
     check_array(reference, "reference", (topology.n_vertices, 3))
     _check_rla(rla, topology)
     reference = jnp.asarray(reference)

@@ -30,7 +30,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .._geometry import edge_lengths, face_areas
 from .._topology import Topology
 from .._validate import check_array
-from ._rla import RLA, _check_rla, fold_mask, interior_dihedral_angles, wrap_angle
+from ._rla import RLA, _check_rla, _check_topology, fold_mask, interior_dihedral_angles, wrap_angle
 
 __all__ = ["shell_energy", "shell_residuals"]
 
@@ -38,8 +38,7 @@ _BENDING = ("fb", "printed")
 
 
 def _check(vertices, rest, rla, topology, bending, bending_stiffness, fold_eps):
-    if not isinstance(topology, Topology):
-        raise ValueError(f"`topology` must be a bodyprior.Topology, got {type(topology).__name__}.")
+    _check_topology(topology)
     check_array(vertices, "vertices", (topology.n_vertices, 3))
     check_array(rest, "rest", (topology.n_vertices, 3))
     _check_rla(rla, topology)
