@@ -248,12 +248,22 @@ def dihedral_angles(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Fl
     `0`; value and gradient are NaN-free there and at flat hinges.
     """
     vertices = _check_topology(topology, vertices)
+    st = _hinge_stencils(topology)
+    x = vertices[st]
+    return _hinge_angles(x[:, 0], x[:, 1], x[:, 2], x[:, 3], topology.interior)
+
+
+def _hinge_stencils(topology: Topology) -> Int[Array, "E 4"]:
+    """`(i, j, k, l)` per edge: its two vertices and the opposite vertices of faces `s` and `t`
+    (see [`bodyprior.dihedral_angles`][]); a boundary edge has `l = i` (its angle is 0)."""
     e, opp = topology.edges, topology.edge_opposite
-    i, j = e[:, 0], e[:, 1]
-    k = opp[:, 0]
-    # Boundary edges have l = -1: substitute i, which gives a zero normal (and is masked anyway).
-    m = jnp.where(topology.interior, opp[:, 1], i)
-    xi, xj, xk, xl = vertices[i], vertices[j], vertices[k], vertices[m]
+    m = jnp.where(topology.interior, opp[:, 1], e[:, 0])
+    return jnp.stack([e[:, 0], e[:, 1], opp[:, 0], m], axis=1)
+
+
+def _hinge_angles(xi, xj, xk, xl, interior):
+    """The signed bending angle of hinges given by their four stencil points (`... 3` each) and
+    an `interior` mask: the kernel of [`bodyprior.dihedral_angles`][]."""
     d = _safe_normalize(xj - xi)
     n_s = _safe_normalize(jnp.cross(xj - xi, xk - xi))
     n_t = _safe_normalize(jnp.cross(xi - xj, xl - xj))
@@ -261,7 +271,7 @@ def dihedral_angles(vertices: Float[ArrayLike, "V 3"], topology: Topology) -> Fl
     x = jnp.sum(n_s * n_t, axis=-1)
     # For unit normals and a unit edge direction perpendicular to both, (y, x) = (sin θ, cos θ); a
     # degenerate hinge has a zero normal and x = y = 0.
-    ok = topology.interior & (x * x + y * y > 0.25)
+    ok = interior & (x * x + y * y > 0.25)
     return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)), 0.0)
 
 

@@ -9,7 +9,9 @@ This subpackage holds PanoMan's machinery on bodyprior's core (it imports the co
   holonomy diagnostics otherwise, differentiable and batched.
 - **The discrete-shell energy** (eqs. 6–8): [`bodyprior.panoman.shell_residuals`][] /
   [`bodyprior.panoman.shell_energy`][] (stretch as printed, F&B or printed bending weight, wrapped
-  angles, fold guard). Its Gauss–Newton solver with constraints is not built yet.
+  angles, fold guard), and its Levenberg–Marquardt solver [`bodyprior.panoman.shell_solve`][]
+  over vertices and model parameters jointly, with editing, handle, joint and point-to-plane
+  constraints ([`bodyprior.panoman.shell_constraints`][]).
 
 Angles follow the paper: `â = ψ − ψ_r` with `ψ` the interior dihedral angle
 ([`bodyprior.panoman.interior_dihedral_angles`][], `π − bodyprior.dihedral_angles`).
@@ -57,21 +59,33 @@ from ._rla import (
 )
 from ._shell import shell_energy as shell_energy
 from ._shell import shell_residuals as shell_residuals
+from ._solve import ShellConstraints as ShellConstraints
+from ._solve import ShellFit as ShellFit
+from ._solve import ShellSolver as ShellSolver
+from ._solve import prepare_shell_solver as prepare_shell_solver
+from ._solve import shell_constraints as shell_constraints
+from ._solve import shell_solve as shell_solve
 
 __all__ = [
     "RLA",
     "DecodedMesh",
     "Decoder",
+    "ShellConstraints",
+    "ShellFit",
+    "ShellSolver",
     "fold_mask",
     "interior_dihedral_angles",
     "nearest_rotation",
     "prepare_decoder",
+    "prepare_shell_solver",
     "rla_decode",
     "rla_encode",
     "rla_encode_path",
     "rla_encode_unwrapped",
     "rla_targets",
     "shell_energy",
+    "shell_constraints",
     "shell_residuals",
+    "shell_solve",
     "wrap_angle",
 ]
