@@ -59,10 +59,6 @@ __all__ = ["ShellConstraints", "ShellFit", "ShellSolver", "prepare_shell_solver"
 # Constraints
 
 
-def _f64(x, shape):
-    return jnp.asarray(np.zeros(shape) if x is None else x, jnp.float64)
-
-
 class ShellConstraints(eqx.Module):
     """The constraint energies `E_C` of a solve (module docstring), as arrays: new values with the
     same sizes do not recompile. Build with [`bodyprior.panoman.shell_constraints`][].

@@ -1,0 +1,104 @@
+"""PanoMan's shell solver (bodyprior.panoman.shell_solve): recovery, constraints, no recompile."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+
+import bodyprior as bp
+from bodyprior import panoman as pm
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    m = trimesh.creation.icosphere(3)
+    v = np.asarray(m.vertices) * np.array([1.0, 0.7, 1.3])
+    top = bp.Topology.from_faces(np.asarray(m.faces), v.shape[0])
+    x = v.copy()
+    x[:, 2] += 0.3 * np.sin(2 * x[:, 0])
+    return v, x, top, pm.prepare_shell_solver(top)
+
+
+class _Blend(eqx.Module):
+    basis: jax.Array  # (K, 2E)
+
+    def __call__(self, p):
+        return pm.RLA.from_concat(p @ self.basis)
+
+
+def test_handles_recover_known_body_vertices_only(mesh):
+    v, x, top, solver = mesh
+    rla = pm.rla_encode(x, v, top)
+    h = np.random.default_rng(0).choice(v.shape[0], 8, replace=False)
+    cons = pm.shell_constraints(handles=(h, x[h]))
+    targets = _Blend(rla.concat()[None])
+    sol = pm.shell_solve(lambda p: targets(jnp.ones(1)), v, (), v, top, cons, solver=solver)
+    assert bool(sol.stats["converged"])
+    assert float(jnp.abs(sol.value.vertices - x).max()) < 1e-9
+    assert float(sol.value.energy) < 1e-20
+
+
+def test_joint_params_and_vertices_recovered(mesh):
+    """Targets from a callable of parameters: from p = 0 and the rest mesh, handles taken from a
+    known body realised by p* = (1, 0) give back both the body and p*."""
+    v, x, top, solver = mesh
+    y = v * 1.1 + 0.05 * np.sin(3 * v)
+    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
+    h = np.random.default_rng(1).choice(v.shape[0], 8, replace=False)
+    cons = pm.shell_constraints(handles=(h, x[h]))
+    sol = pm.shell_solve(_Blend(basis), v, jnp.zeros(2), v, top, cons, solver=solver)
+    np.testing.assert_allclose(sol.value.params, [1.0, 0.0], atol=1e-8)
+    assert float(jnp.abs(sol.value.vertices - x).max()) < 1e-8
+    # Editing constraints (eqs. 9-10) pull a parameter to its value against the handles.
+    cons2 = pm.shell_constraints(handles=(h, x[h]), params=(np.array([1]), np.array([0.5])))
+    sol2 = pm.shell_solve(_Blend(basis), v, jnp.zeros(2), v, top, cons2, solver=solver)
+    assert float(sol2.value.params[1]) > 0.05
+    assert float(sol2.value.constraint_energy) > 0
+
+
+def test_joints_and_surface_constraints_and_no_recompile(mesh):
+    v, x, top, solver = mesh
+    rla = pm.rla_encode(x, v, top)
+    targets = _Blend(rla.concat()[None])
+    rng = np.random.default_rng(2)
+    idx = rng.choice(v.shape[0], (3, 6), replace=False)
+    coef = np.full((3, 6), 1 / 6)
+    joints = (idx, coef, np.einsum("jm,jmd->jd", coef, x[idx]))
+    f = rng.choice(top.n_faces, 40, replace=False)
+    bary = rng.dirichlet(np.ones(3), 40)
+    pts = np.einsum("sa,sad->sd", bary, x[np.asarray(top.faces)[f]])
+    nrm = np.asarray(bp.face_normals(x, top.faces))[f]
+    h = np.array([0, 5])
+    cons = pm.shell_constraints(handles=(h, x[h]), joints=joints, surface=(f, bary, pts, nrm))
+    before = pm._solve._solve_jit._cached._cache_size()
+    sol = pm.shell_solve(lambda p: targets(jnp.ones(1)), v, (), v, top, cons, solver=solver)
+    assert float(jnp.abs(sol.value.vertices - x).max()) < 1e-7
+    # New constraint values, same sizes: no new compilation.
+    cons_b = pm.shell_constraints(
+        handles=(h, x[h] + 0.01), joints=joints, surface=(f, bary, pts, nrm)
+    )
+    fn = sol  # keep the first result alive
+    del fn
+    tg = lambda p: targets(jnp.ones(1))  # noqa: E731
+    pm.shell_solve(tg, v, (), v, top, cons, solver=solver, max_steps=2)
+    n = pm._solve._solve_jit._cached._cache_size()
+    pm.shell_solve(tg, v, (), v, top, cons_b, solver=solver, max_steps=2)
+    assert pm._solve._solve_jit._cached._cache_size() == n
+    assert n >= before
+
+
+@pytest.mark.bad_input
+def test_bad_input(mesh):
+    v, x, top, solver = mesh
+    rla = pm.rla_encode(x, v, top)
+    with pytest.raises(ValueError, match="handles"):
+        pm.shell_constraints(handles=(np.array([0, 1]), np.zeros((3, 3))))
+    with pytest.raises(ValueError, match="vertices0"):
+        pm.shell_solve(lambda p: rla, v, (), v[:-1], top, solver=solver)
+    with pytest.raises(ValueError, match="handle_index"):
+        cons = pm.shell_constraints(handles=(np.array([10**6]), np.zeros((1, 3))))
+        pm.shell_solve(lambda p: rla, v, (), v, top, cons, solver=solver)
