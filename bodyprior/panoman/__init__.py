@@ -12,6 +12,10 @@ This subpackage holds PanoMan's machinery on bodyprior's core (it imports the co
   angles, fold guard), and its Levenberg–Marquardt solver [`bodyprior.panoman.shell_solve`][]
   over vertices and model parameters jointly, with editing, handle, joint and point-to-plane
   constraints ([`bodyprior.panoman.shell_constraints`][]).
+- **Sparse localized components** (Neumann et al. 2013, as PanoMan decomposes its RLA, §4.2):
+  [`bodyprior.panoman.splocs`][] on per-edge scalars or per-vertex vectors, support maps from
+  mesh distances in metres, signed weights, monotone energy; [`bodyprior.panoman.Splocs`][] with
+  [`bodyprior.panoman.splocs_project`][] / [`bodyprior.panoman.splocs_reconstruct`][].
 
 Angles follow the paper: `â = ψ − ψ_r` with `ψ` the interior dihedral angle
 ([`bodyprior.panoman.interior_dihedral_angles`][], `π − bodyprior.dihedral_angles`).
@@ -65,6 +69,10 @@ from ._solve import ShellSolver as ShellSolver
 from ._solve import prepare_shell_solver as prepare_shell_solver
 from ._solve import shell_constraints as shell_constraints
 from ._solve import shell_solve as shell_solve
+from ._splocs import Splocs as Splocs
+from ._splocs import splocs as splocs
+from ._splocs import splocs_project as splocs_project
+from ._splocs import splocs_reconstruct as splocs_reconstruct
 
 __all__ = [
     "RLA",
@@ -73,6 +81,7 @@ __all__ = [
     "ShellConstraints",
     "ShellFit",
     "ShellSolver",
+    "Splocs",
     "fold_mask",
     "interior_dihedral_angles",
     "nearest_rotation",
@@ -87,5 +96,8 @@ __all__ = [
     "shell_constraints",
     "shell_residuals",
     "shell_solve",
+    "splocs",
+    "splocs_project",
+    "splocs_reconstruct",
     "wrap_angle",
 ]

@@ -236,9 +236,7 @@ def prepare_decoder(
     corner_t = np.argmax(fe[t] == inner[:, None], axis=1)
 
     # Dual graph and its breadth-first spanning tree from the anchor face.
-    dual = sps.coo_matrix(
-        (np.arange(1, inner.size + 1), (s, t)), shape=(F, F)
-    ).tocsr()
+    dual = sps.coo_matrix((np.arange(1, inner.size + 1), (s, t)), shape=(F, F)).tocsr()
     dual = dual + dual.T
     n_comp, _ = csgraph.connected_components(dual, directed=False)
     if n_comp != 1:

@@ -236,5 +236,3 @@ def fold_mask(
     _, psi = rla_targets(rla, reference, topology)
     theta = wrap_angle(math.pi - psi)  # signed bending angle of the target, in [−π, π)
     return (jnp.abs(theta) > math.pi - eps) | (jnp.abs(rla.angles) > math.pi - eps)
-
-
