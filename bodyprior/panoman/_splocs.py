@@ -58,7 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.sparse.csgraph import dijkstra
 from tqdm.auto import tqdm
 
@@ -99,7 +99,7 @@ class Splocs(eqx.Module):
     def n_components(self) -> int:
         return self.components.shape[0]
 
-    def supports(self, rtol: float = 1e-6) -> Int[Array, "K S"]:
+    def supports(self, rtol: float = 1e-6) -> Bool[Array, "K S"]:
         """Bool `(K, S)`: sites where a component's group norm exceeds `rtol` × its maximum."""
         g = jnp.linalg.norm(self.components, axis=-1)
         return g > rtol * jnp.max(g, axis=1, keepdims=True)
