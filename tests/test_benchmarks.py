@@ -68,7 +68,19 @@ KEYS = {
     "body_eval": ["bodyprior_ms_b1", "bodyprior_ms_per_body_b16"],
     "panoman_core": [
         f"decimated.{k}"
-        for k in ("decode_s", "decode_s_b16", "peer_decode_s", "bodyprior_blend_s", "peer_blend_s")
+        for k in (
+            "decode_s",
+            "decode_s_b16",
+            "peer_decode_s",
+            "bodyprior_blend_s",
+            "peer_blend_s",
+            "shell.shell_iter_s",
+            "shell.setup_s",
+            "shell.compile_s",
+            "splocs.splocs_outer_s",
+            "splocs.peer_outer_s",
+            "splocs.init_s",
+        )
     ],
     "dspp": [
         "sample_pair_ms_b1",
@@ -141,6 +153,11 @@ def test_benchmark_quick_runs(name, tmp_path):
         assert d["bodyprior_blend_max_rel_length_residual"] == pytest.approx(
             d["peer_blend_max_rel_length_residual"], rel=1e-3
         )
+        # the shell solve lowers its energy; SPLOCS's energy never rises and one of its outer
+        # iterations ends no higher than the reference iteration from the same start
+        assert d["shell"]["energy_after_3"] < d["shell"]["energy0"]
+        sp = d["splocs"]
+        assert sp["energy_non_increasing"] and sp["energy_after_1"] <= sp["peer_energy_after_1"]
     for key in keys:
         for v in _leaves(res, key):
             assert isinstance(v, (int, float)) and math.isfinite(v) and v > 0, (key, v)

@@ -19,6 +19,7 @@ import jax
 from .._solution import _check as check_solution
 from ..dspp._train import _aegan_cycle as dspp_aegan_cycle
 from ..dspp._train import _init_state as dspp_init_state
+from ..panoman._splocs import _Sites as PanomanSplocsSites
 from ..registration._nrd import _apply as nrd_apply
 from ..registration._nrd import _correspond as nrd_correspond
 from ..registration._nrd import _energy as nrd_energy
@@ -36,6 +37,7 @@ from ..sscape._fit import _correspondences as sscape_fit_correspondences
 
 __all__ = [
     "NRDRound",
+    "PanomanSplocsSites",
     "check_solution",
     "dspp_aegan_cycle",
     "dspp_init_state",
