@@ -262,8 +262,7 @@ def bench_shell(rest, posed, faces, n_params: int, n_handles: int, repeats: int)
 
     t = time.perf_counter()
     run(1)
-    compile_s = time.perf_counter() - t
-    run(3)
+    compile_s = time.perf_counter() - t  # compile + one solve (the step budget is data)
     t1 = _median(lambda: run(1), repeats)
     t3 = _median(lambda: run(3), repeats)
     sol = run(3)
@@ -273,7 +272,7 @@ def bench_shell(rest, posed, faces, n_params: int, n_handles: int, repeats: int)
         "n_params": n_params,
         "n_handles": n_handles,
         "prepare_s": prepare_s,
-        "compile_s": compile_s,
+        "compile_s": compile_s - t1,
         "solve_1_step_s": t1,
         "solve_3_steps_s": t3,
         "shell_iter_s": iter_s,
@@ -401,7 +400,7 @@ def bench_panoman_core(quick: bool, repeats: int) -> dict:
     posed8 = posed + [
         np.asarray(bp.evaluate(body, bp.phenotype_vector(), pose())[0]) for _ in range(6)
     ]
-    n_par, n_h = (50, 50) if quick else (500, 200)
+    n_par, n_h = (20, 30) if quick else (500, 200)
     out["decimated"]["shell"] = bench_shell(
         rest[vmap_], [p[vmap_] for p in posed8], dfaces, n_par, n_h, 1 if quick else repeats
     )

@@ -22,7 +22,7 @@ def pcg(
     rhs: Float[ArrayLike, "*n k"],
     x0: Float[ArrayLike, "*n k"],
     *,
-    rtol: float,
+    rtol: float | Float[ArrayLike, ""],
     max_steps: int,
     rounding_level: Float[Array, " k"] | None = None,
 ) -> tuple[Float[Array, "*n k"], Int[Array, ""], Float[Array, ""]]:

@@ -450,7 +450,13 @@ def test_load_file_written_before_the_rig_module(tmp_path):
     assert old.joint_names == now.joint_names
     for f in _FIELDS[:9]:
         a, b = np.asarray(getattr(old, f)), np.asarray(getattr(now, f))
-        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+        assert a.dtype == b.dtype and a.shape == b.shape, f
+        # Float leaves to rounding: the toy model is rebuilt on this CPU, and XLA's vector width
+        # (AVX2 vs AVX-512) changes the last bits (seen: byte-equal on one machine, not another).
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13, err_msg=f)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=f)
     with zipfile.ZipFile(path) as z:
         old_meta, old_leaves = json.loads(z.read("metadata.json")), z.read("leaves.eqx")
     save_model(tmp_path / "again.sscape", old)

@@ -34,7 +34,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._geometry import dihedral_angles, edge_lengths
 from .._topology import Topology
-from .._validate import check_array, check_positive_int
+from .._validate import check_array, check_positive_int, is_tracer
 
 __all__ = [
     "RLA",
@@ -217,7 +217,11 @@ def _check_rla(rla, topology: Topology, name: str = "rla"):
 
 
 def fold_mask(
-    rla: RLA, reference: Float[ArrayLike, "V 3"], topology: Topology, *, eps: float = 0.1
+    rla: RLA,
+    reference: Float[ArrayLike, "V 3"],
+    topology: Topology,
+    *,
+    eps: float | Float[ArrayLike, ""] = 0.1,
 ) -> Bool[Array, " E"]:
     """Hinges whose angle is ill-determined: within `eps` of a fold, or changed by nearly `±π`.
 
@@ -231,7 +235,7 @@ def fold_mask(
 
     **Returns:** `(E,)` bool.
     """
-    if not 0.0 < float(eps) < math.pi / 2:
+    if not is_tracer(eps) and not 0.0 < float(eps) < math.pi / 2:
         raise ValueError(f"`eps` must lie in (0, π/2) radians, got {eps}.")
     _, psi = rla_targets(rla, reference, topology)
     theta = wrap_angle(math.pi - psi)  # signed bending angle of the target, in [−π, π)

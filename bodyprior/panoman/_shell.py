@@ -103,7 +103,7 @@ def _residuals(vertices, rest, rla, topology, bending, bending_stiffness, fold_e
     w = lr / (jnp.sqrt(a_safe) if bending == "fb" else a_safe)
     psi_target = interior_dihedral_angles(rest, topology) + rla.angles
     d = wrap_angle(interior_dihedral_angles(vertices, topology) - psi_target)
-    bend = jnp.where(ok, math.sqrt(bending_stiffness) * w * d, 0.0)
+    bend = jnp.where(ok, jnp.sqrt(bending_stiffness) * w * d, 0.0)
     return stretch, bend
 
 

@@ -392,15 +392,18 @@ class ShellFit(eqx.Module):
 
 
 class _Config(eqx.Module):
+    """Solve settings. The numbers are array leaves, so a new weight, tolerance, damping or step
+    budget reuses the compiled solve; only `bending` and `cg_max_steps` are structure."""
+
     bending: str = eqx.field(static=True)
-    bending_stiffness: float = eqx.field(static=True)
-    fold_eps: float = eqx.field(static=True)
-    weight: float = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
-    ftol: float = eqx.field(static=True)
-    cg_rtol: float = eqx.field(static=True)
+    bending_stiffness: Array
+    fold_eps: Array
+    weight: Array
+    max_steps: Array
+    ftol: Array
+    cg_rtol: Array
+    damping: Array
     cg_max_steps: int = eqx.field(static=True)
-    damping: float = eqx.field(static=True)
 
 
 def _parts(V, p, targets, rest, cons: ShellConstraints, topology, cfg: _Config, unravel):
@@ -684,16 +687,17 @@ def shell_solve(
         solver = prepare_shell_solver(topology)
     elif not isinstance(solver, ShellSolver) or solver.n_vertices != topology.n_vertices:
         raise ValueError("`solver` must be prepare_shell_solver(topology) for this topology.")
+    f64 = lambda v: jnp.asarray(float(v), jnp.float64)  # noqa: E731
     cfg = _Config(
         bending,
-        float(bending_stiffness),
-        float(fold_eps),
-        float(weight),
-        int(max_steps),
-        float(ftol),
-        float(cg_rtol),
+        f64(bending_stiffness),
+        f64(fold_eps),
+        f64(weight),
+        jnp.asarray(int(max_steps)),
+        f64(ftol),
+        f64(cg_rtol),
+        f64(damping),
         int(cg_max_steps),
-        float(damping),
     )
     sol = _solve_jit(targets, rest, params0, vertices0, constraints, topology, solver, cfg)
     return _check(sol, throw, "shell_solve")

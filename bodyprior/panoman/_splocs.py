@@ -210,7 +210,8 @@ def _greedy_step(x, w_all, c_all, m, site, keep, k, d: int, nonnegative: bool):
     a = jnp.max(jnp.abs(w))
     w = jnp.where(a > 0, w / jnp.where(a > 0, a, 1), 0)
     ww = jnp.sum(w.astype(f64) ** 2)
-    rtw = x.T @ w - c_all.T @ (w_all.T @ w)  # (S·d,)
+    # `w @ x`, not `x.T @ w`: XLA:CPU runs the transposed GEMV 17x slower (0.71 vs 0.04 s here).
+    rtw = w @ x - (w @ w_all) @ c_all  # (S·d,)
     mask = jnp.repeat(keep, d).astype(x.dtype)
     c = jnp.where(ww > 0, rtw * mask / jnp.where(ww > 0, ww, 1).astype(x.dtype), 0)
     gain = 2.0 * jnp.sum((c * rtw).astype(f64)) - ww * jnp.sum(c.astype(f64) ** 2)
