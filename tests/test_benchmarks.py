@@ -155,7 +155,7 @@ def test_benchmark_quick_runs(name, tmp_path):
         )
         # the shell solve lowers its energy; SPLOCS's energy never rises and one of its outer
         # iterations ends no higher than the reference iteration from the same start
-        assert d["shell"]["energy_after_3"] < d["shell"]["energy0"]
+        assert d["shell"]["energy_after_6"] < d["shell"]["energy0"]
         sp = d["splocs"]
         assert sp["energy_non_increasing"] and sp["energy_after_1"] <= sp["peer_energy_after_1"]
     for key in keys:
