@@ -288,7 +288,10 @@ def bench_shell(rest, posed, faces, n_params: int, n_handles: int, repeats: int)
 # ------------------------------------------------------------------------------------------ splocs
 
 
-def reference_splocs_iteration(x, w, c, centers, ramp, sparsity, rho=10.0, n_admm=10):
+SPLOCS_D_MIN, SPLOCS_D_MAX = 0.10, 0.45  # body support radii, metres (panoman_v2 §6)
+
+
+def reference_splocs_iteration(x, w, c, ramp, sparsity, rho=10.0, n_admm=10):
     """One outer iteration of the reference SPLOCS on centred, scaled data `x` `(N, S)` (float32):
     per-component block-coordinate weight updates with rank-1 residual updates, support maps at
     each component's largest site, ADMM on the components. Returns `(w, c, centers, lam)`."""
@@ -327,7 +330,7 @@ def bench_splocs(rest, feats, faces, K: int, repeats: int) -> dict:
     """`feats` `(N, E)` float32 relative edge lengths."""
     top = bp.Topology.from_faces(faces, rest.shape[0])
     N, E = feats.shape
-    kw = dict(n_components=K, d_min=0.10, d_max=0.45, progress=False)
+    kw = dict(n_components=K, d_min=SPLOCS_D_MIN, d_max=SPLOCS_D_MAX, progress=False)
     t = time.perf_counter()
     init = pm.splocs(feats, rest, top, n_iterations=0, **kw)
     init_wall_s = time.perf_counter() - t
@@ -337,14 +340,14 @@ def bench_splocs(rest, feats, faces, K: int, repeats: int) -> dict:
     ours_s = float(np.median(it_s[1:]))
 
     # The peer from the same initialisation, in the same normalised units.
-    sites = PanomanSplocsSites(rest, top, "edges", 0.45)
+    sites = PanomanSplocsSites(rest, top, "edges", SPLOCS_D_MAX)
     scale = float(init.value.scale)
     x = ((feats - np.asarray(init.value.mean)[:, 0]) / scale).astype(np.float32)
     w = np.asarray(init.value.weights, np.float32).copy()
     c = (np.asarray(init.value.components)[..., 0] / scale).astype(np.float32)
-    ramp = lambda s: sites.ramp(s, 0.10, 0.45)  # noqa: E731
+    ramp = lambda s: sites.ramp(s, SPLOCS_D_MIN, SPLOCS_D_MAX)  # noqa: E731
     t = time.perf_counter()
-    w2, c2, _, lam2 = reference_splocs_iteration(x, w, c, init.value.centers, ramp, 2.0)
+    w2, c2, _, lam2 = reference_splocs_iteration(x, w, c, ramp, 2.0)
     peer_s = time.perf_counter() - t
     r = x - w2 @ c2
     peer_energy = 0.5 * float(np.sum(r.astype(np.float64) ** 2)) + float(

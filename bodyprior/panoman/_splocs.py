@@ -154,10 +154,9 @@ class _Sites:
         if d is None:
             src = [site] if self.kind == "vertices" else list(self.edges[site])
             dv = dijkstra(self.graph, directed=False, indices=src, limit=self.limit, min_only=True)
-            if self.kind == "edges":
+            if self.kind == "edges":  # an edge sits at its midpoint
                 dv = 0.5 * (dv[self.edges[:, 0]] + dv[self.edges[:, 1]])
-            d = dv
-            self._cache[site] = d
+            d = self._cache[site] = dv
         return d
 
     def ramp(self, site: int, d_min: float, d_max: float) -> np.ndarray:
@@ -394,9 +393,10 @@ def splocs(
     dmin, dmax = _radii(d_min, "d_min", S), _radii(d_max, "d_max", S)
     if np.any(dmax <= dmin):
         raise ValueError("`d_max` must exceed `d_min` at every site.")
-    for name, v in (("sparsity", sparsity), ("rho", rho)):
-        if not (math.isfinite(v) and v >= 0 and (name != "rho" or v > 0)):
-            raise ValueError(f"`{name}` must be a finite non-negative number, got {v!r}.")
+    if not (math.isfinite(sparsity) and sparsity >= 0):
+        raise ValueError(f"`sparsity` must be a finite number >= 0, got {sparsity!r}.")
+    if not (math.isfinite(rho) and rho > 0):
+        raise ValueError(f"`rho` must be a finite number > 0, got {rho!r}.")
     n_iterations = int(n_iterations)
     if n_iterations < 0:
         raise ValueError(f"`n_iterations` must be >= 0, got {n_iterations}.")
@@ -448,12 +448,7 @@ def splocs(
     lam_np = np.stack([sparsity * graph.ramp(int(s), dmin[s], dmax[s]) for s in centers])
     lam = jnp.asarray(lam_np, dtype)
 
-    def total_energy(w, c):
-        cross = jnp.sum((w.T @ xd).astype(jnp.float64) * c)
-        quad = jnp.sum(((w.T @ w) @ c).astype(jnp.float64) * c)
-        return float(_data_energy(xx, cross, quad) + _sparsity(c, lam, d))
-
-    energy = [total_energy(w_all, c_all)]
+    energy = [float(_data_energy_only(xd, xx, w_all, c_all) + _sparsity(c_all, lam, d))]
     u = jnp.zeros_like(c_all)
     lo = 0.0 if nonnegative else -1.0
     converged = False
@@ -486,7 +481,7 @@ def splocs(
             break
     n_done = it + 1 if n_iterations else 0
 
-    # Final weights rescale (the C-step may have zeroed components) and the adaptive pruning.
+    # The adaptive rule's pruning: drop the components the C-step shrank to zero.
     gn = np.asarray(_group_norm(c_all, d))
     active = gn.max(axis=1) > 0
     if adaptive_tol is not None and not active.all() and active.any():
