@@ -11,6 +11,7 @@ from . import sscape as sscape
 from . import panoman as panoman
 from ._body import (
     PHENOTYPES as PHENOTYPES,
+    TWIST_SEGMENTS as TWIST_SEGMENTS,
     BonePlacement as BonePlacement,
     DefaultBody as DefaultBody,
     evaluate as evaluate,
@@ -30,6 +31,7 @@ from ._geometry import (
     barycentric_points as barycentric_points,
     closest_points_on_mesh as closest_points_on_mesh,
     cotangent_weights as cotangent_weights,
+    cross_section_areas as cross_section_areas,
     dihedral_angles as dihedral_angles,
     edge_lengths as edge_lengths,
     face_areas as face_areas,
@@ -119,6 +121,8 @@ from ._skinning import (
     dense_weights_to_topk as dense_weights_to_topk,
     dqs as dqs,
     lbs as lbs,
+    swing_twist_angle as swing_twist_angle,
+    twist_lbs as twist_lbs,
     transform_to_dual_quaternion as transform_to_dual_quaternion,
 )
 from ._topology import Topology as Topology

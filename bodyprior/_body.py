@@ -30,6 +30,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ._kinematics import forward_kinematics
 from ._rig import Rig, RigHolder
 from ._rotations import rotation_shape, rotation_to_matrix
+from ._skinning import _axis_rotation, swing_twist_angle, twist_lbs
 from ._validate import check_array, check_range, is_tracer
 from .assets import load_asset
 
@@ -466,13 +467,16 @@ def evaluate(
     - `root_translation`: shape `(3,)`, metres, added to the root joint (`None` = 0).
     - `pose_rep`: `"axis_angle"` (default), `"matrix"`, `"quaternion"`, `"sixd"` or
       `"euler_<ORDER>"`.
-    - `skinning`: `"lbs"` (linear blend) or `"dqs"` (dual quaternion).
+    - `skinning`: `"lbs"` (linear blend), `"dqs"` (dual quaternion) or `"twist"`
+      (twist-distributed LBS: the twist of each upper arm, forearm (with the wrist's twist moved
+      onto it), thigh and shank about its rest axis turns linearly along the segment instead of
+      at the joint, rigid per cross-section; [`bodyprior.twist_lbs`][], `TWIST_SEGMENTS`).
 
     **Returns:** `(vertices (V, 3), joints (J, 3))`, metres, world frame. Jittable, vmappable,
     differentiable in every array argument.
     """
-    if skinning not in ("lbs", "dqs"):
-        raise ValueError(f"`skinning` must be 'lbs' or 'dqs', got {skinning!r}.")
+    if skinning not in ("lbs", "dqs", "twist"):
+        raise ValueError(f"`skinning` must be 'lbs', 'dqs' or 'twist', got {skinning!r}.")
     verts, joints = rest_shape(body, phenotypes, local_changes, facial_actions)
     J = body.n_joints
     if pose is None:
@@ -484,8 +488,77 @@ def evaluate(
     else:
         check_array(root_translation, "root_translation", (3,))
         t = jnp.asarray(root_translation, verts.dtype)
+    if skinning == "twist":
+        return _twist_skin(body, verts, joints, R, t)
     A, posed_joints = forward_kinematics(body.parents, R, joints, t)
     return body.rig.skin(verts, A, method=skinning), posed_joints
+
+
+# Limb segments of the twist-distributed skinning: (bone, child whose head ends the segment, child
+# whose twist about the segment axis moves onto the segment or None). The wrist's twist moves to
+# the forearm (CMU puts forearm pronation in the wrist channel, panoman_v2 §6.10).
+TWIST_SEGMENTS: dict[str, tuple[tuple[str, str, str | None], ...]] = {
+    "cmu_mb": tuple(
+        seg
+        for side in ("Left", "Right")
+        for seg in (
+            (f"{side}Arm", f"{side}ForeArm", None),
+            (f"{side}ForeArm", f"{side}Hand", f"{side}Hand"),
+            (f"{side}UpLeg", f"{side}Leg", None),
+            (f"{side}Leg", f"{side}Foot", None),
+        )
+    ),
+    "game_engine": tuple(
+        seg
+        for side in ("l", "r")
+        for seg in (
+            (f"upperarm_{side}", f"lowerarm_{side}", None),
+            (f"lowerarm_{side}", f"hand_{side}", f"hand_{side}"),
+            (f"thigh_{side}", f"calf_{side}", None),
+            (f"calf_{side}", f"foot_{side}", None),
+        )
+    ),
+}
+
+
+def _twist_skin(body: DefaultBody, verts, joints, R, t):
+    """Twist-distributed skinning (panoman_v2 §3.2 G3): per limb segment the twist about the rest
+    axis is a rotation ramp along the bone, the swing is LBS; see [`bodyprior.twist_lbs`][]."""
+    name = body.bones.name
+    if name not in TWIST_SEGMENTS:
+        raise ValueError(
+            f"`skinning='twist'` needs a rig in {sorted(TWIST_SEGMENTS)}, got {name!r}."
+        )
+    index = {n: i for i, n in enumerate(body.joint_names)}
+    bones, heads, axes, lengths, angles = [], [], [], [], []
+    for bone, child, absorb in TWIST_SEGMENTS[name]:
+        b, c = index[bone], index[child]
+        d = joints[c] - joints[b]
+        L = jnp.linalg.norm(d)
+        a = d / L
+        if absorb is not None:  # R_b <- R_b T_c, R_c <- T_c^T R_c: the child's world is unchanged
+            k = index[absorb]
+            Tc = _axis_rotation(a, swing_twist_angle(R[k], a))
+            R = R.at[b].set(R[b] @ Tc).at[k].set(Tc.T @ R[k])
+        bones.append(b)
+        heads.append(joints[b])
+        axes.append(a)
+        lengths.append(L)
+        angles.append(swing_twist_angle(R[b], a))
+    A, posed_joints = forward_kinematics(body.parents, R, joints, t)
+    rig = body.rig
+    v = twist_lbs(
+        verts,
+        rig.skin_indices,
+        rig.skin_weights,
+        A,
+        np.asarray(bones, np.int32),
+        jnp.stack(heads),
+        jnp.stack(axes),
+        jnp.stack(lengths),
+        jnp.stack(angles),
+    )
+    return v, posed_joints
 
 
 def landmarks(body: DefaultBody, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "N 3"]:

@@ -27,6 +27,7 @@ __all__ = [
     "barycentric_points",
     "closest_points_on_mesh",
     "cotangent_weights",
+    "cross_section_areas",
     "dihedral_angles",
     "edge_lengths",
     "face_areas",
@@ -494,7 +495,6 @@ def sample_surface(
 # --------------------------------------------------------------------------------------------------
 
 
-
 def nearest_neighbors(
     queries: Float[ArrayLike, "Q 3"], points: Float[ArrayLike, "P 3"], *, chunk_size: int = 1024
 ) -> tuple[Int[Array, " Q"], Float[Array, " Q"]]:
@@ -644,3 +644,63 @@ def closest_points_on_mesh(
     bary = _closest_bary(queries, t[:, 0], t[:, 1], t[:, 2])
     pts = jnp.einsum("qc,qcd->qd", bary, t)
     return pts, fidx, bary, _safe_norm(queries - pts)
+
+
+def cross_section_areas(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    origin: Float[ArrayLike, " 3"],
+    axis: Float[ArrayLike, " 3"],
+    offsets: Float[ArrayLike, " T"],
+    *,
+    radius: float = 0.08,
+) -> np.ndarray:
+    """Areas of the mesh's cross-sections by planes normal to `axis` (host, NumPy).
+
+    Plane `k` passes through `origin + offsets[k] · axis`; the slice is the closed polyline where
+    the triangles cross it, kept where its segments lie within `radius` of the axis point (so that
+    other limbs or the torso cut by the same plane do not count). The area is `|Σ ½ (p − c) × (q −
+    c) · axis|` over the oriented segments `p → q` (exact for a closed slice around the axis
+    point `c`).
+
+    **Arguments:** `vertices (V, 3)` m; `faces (F, 3)` consistently oriented; `origin (3,)` m;
+    `axis (3,)` (normalised here); `offsets (T,)` m along the axis; `radius` m.
+
+    **Returns:** `(T,)` areas in m² (0 where the plane misses the mesh near the axis).
+    """
+    x = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    check_array(x, "vertices", (None, 3))
+    check_array(f, "faces", (None, 3), integer=True)
+    o = np.asarray(origin, np.float64).reshape(3)
+    a = np.asarray(axis, np.float64).reshape(3)
+    n = np.linalg.norm(a)
+    if not n > 0:
+        raise ValueError("`axis` must be a non-zero 3-vector.")
+    a = a / n
+    out = []
+    for off in np.atleast_1d(np.asarray(offsets, np.float64)):
+        c = o + off * a
+        d = (x - c) @ a
+        area = 0.0
+        di = d[f]  # (F, 3)
+        cross = (di > 0).any(1) & (di <= 0).any(1)
+        fc, dc = f[cross], di[cross]
+        entry = np.zeros((len(fc), 3))
+        exit_ = np.zeros((len(fc), 3))
+        for k in range(3):
+            i, j = k, (k + 1) % 3
+            pi, pj = x[fc[:, i]], x[fc[:, j]]
+            denom = dc[:, i] - dc[:, j]
+            lam = np.divide(dc[:, i], denom, out=np.zeros_like(denom), where=denom != 0)
+            p = pi + lam[:, None] * (pj - pi)
+            ex = (dc[:, i] > 0) & (dc[:, j] <= 0)
+            en = (dc[:, i] <= 0) & (dc[:, j] > 0)
+            exit_[ex] = p[ex]
+            entry[en] = p[en]
+        mid = 0.5 * (entry + exit_) - c
+        near = np.linalg.norm(mid - np.outer(mid @ a, a), axis=1) < radius
+        u, w = entry[near] - c, exit_[near] - c
+        area = abs(0.5 * float(np.sum(np.cross(u, w) @ a)))
+        out.append(area)
+    return np.asarray(out)

@@ -1,5 +1,5 @@
 """Skinning: linear blend skinning (LBS) with sparse top-k weights, and dual-quaternion skinning
-(DQS).
+(DQS), and twist-distributed LBS.
 
 Skinning weights are stored sparsely: each vertex has `K` (joint index, weight) pairs, `K` small
 (typically 4–8), instead of a dense `(V, J)` matrix. Transforms are the `(J, 4, 4)` skinning
@@ -19,6 +19,8 @@ __all__ = [
     "dense_weights_to_topk",
     "dqs",
     "lbs",
+    "swing_twist_angle",
+    "twist_lbs",
     "transform_to_dual_quaternion",
 ]
 
@@ -185,3 +187,109 @@ def dqs(
     n2 = jnp.sum(b[:, :4] ** 2, axis=-1, keepdims=True)
     b = b / jnp.sqrt(jnp.maximum(n2, jnp.finfo(b.dtype).tiny ** 0.5))
     return jax.vmap(_dq_apply)(b, x)
+
+
+def swing_twist_angle(
+    rotation: Float[ArrayLike, "3 3"], axis: Float[ArrayLike, " 3"]
+) -> Float[Array, ""]:
+    """The twist angle of `rotation` about the unit `axis` (swing–twist decomposition).
+
+    With `q = (w, v)` the rotation's unit quaternion, the twist is the rotation about `axis` by
+    `φ = 2 atan2(v·axis, w)`, wrapped to `(−π, π]`; the swing is the rest. The angle is the same for
+    the swing-then-twist (`R = S T`) and twist-then-swing (`R = T S`) splits. **Returns:** `φ`,
+    radians. NaN-free gradients (also at a 180° swing, where the twist is undefined: `φ = 0`).
+    """
+    q = matrix_to_quaternion(_as_float(rotation))
+    a = _as_float(axis).astype(q.dtype)
+    y = jnp.dot(q[1:], a)
+    x = q[0]
+    tiny = jnp.finfo(q.dtype).eps
+    degenerate = (jnp.abs(x) + jnp.abs(y)) < tiny
+    phi = 2.0 * jnp.arctan2(jnp.where(degenerate, 0.0, y), jnp.where(degenerate, 1.0, x))
+    phi = jnp.where(phi > jnp.pi, phi - 2 * jnp.pi, phi)
+    return jnp.where(phi <= -jnp.pi, phi + 2 * jnp.pi, phi)
+
+
+def _axis_rotation(axis, angle):
+    """Rodrigues: `(..., 3, 3)` rotations by `angle (...)` about the unit `axis (3,)`."""
+    K = jnp.array(
+        [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], axis.dtype
+    )
+    c, s = jnp.cos(angle)[..., None, None], jnp.sin(angle)[..., None, None]
+    return jnp.eye(3, dtype=axis.dtype) + s * K + (1.0 - c) * (K @ K)
+
+
+def twist_lbs(
+    rest_vertices: Float[ArrayLike, "V 3"],
+    weight_indices: Int[ArrayLike, "V K"],
+    weights: Float[ArrayLike, "V K"],
+    transforms: Float[ArrayLike, "J 4 4"],
+    twist_bones: Int[ArrayLike, " B"],
+    heads: Float[ArrayLike, "B 3"],
+    axes: Float[ArrayLike, "B 3"],
+    lengths: Float[ArrayLike, " B"],
+    angles: Float[ArrayLike, " B"],
+) -> Float[Array, "V 3"]:
+    r"""Twist-distributed linear blend skinning: LBS for the swing, a rotation ramp for the twist.
+
+    For each twist bone `b` (a limb segment from its head `h_b` along the unit rest `axis a_b` to
+    its child's head, length `L_b`), `transforms[b]` must carry the bone's **full** twist `φ_b`
+    (`angles[b]`) about `a_b`. A vertex skinned to `b` uses instead
+
+    $A_b \, Gig(\mathrm{Rot}(a_b, \mathrm{offset}_b - (1 - s)\,φ_b), h_big)$,
+    $s = \mathrm{clip}((x - h_b)·a_b / L_b, 0, 1)$,
+
+    where `G(R, h)` rotates about the axis through `h` in the rest frame: the twist turns from 0 at
+    the head to `φ_b` at the child's head, rigidly per cross-section (the "ideal" twist field of
+    panoman_v2 §4.1), so the candy-wrapper collapse of plain LBS does not occur. Other bones skin as
+    in [`bodyprior.lbs`][]. [`bodyprior.evaluate`][] with `skinning="twist"` builds the inputs.
+
+    **Arguments:** `rest_vertices`, `weight_indices`, `weights`, `transforms` as
+    [`bodyprior.lbs`][]; `twist_bones (B,)` int bone indices; `heads (B, 3)` rest heads (m);
+    `axes (B, 3)` unit rest axes; `lengths (B,)` segment lengths (m, > 0); `angles (B,)` twist
+    angles (rad).
+
+    **Returns:** posed vertices `(V, 3)`, metres.
+    """
+    x, idx, w, T = _check_skinning_inputs(rest_vertices, weight_indices, weights, transforms)
+    B = int(np.shape(twist_bones)[0])
+    for name, a, shp in (
+        ("heads", heads, (B, 3)),
+        ("axes", axes, (B, 3)),
+        ("lengths", lengths, (B,)),
+        ("angles", angles, (B,)),
+    ):
+        check_array(a, name, shp, finite=False)
+    dt = x.dtype
+    h = jnp.asarray(heads, dt)
+    a = jnp.asarray(axes, dt)
+    L = jnp.asarray(lengths, dt)
+    phi = jnp.asarray(angles, dt)
+    J = T.shape[0]
+    slot = (
+        jnp.full((J,), B, jnp.int32)
+        .at[jnp.asarray(twist_bones, jnp.int32)]
+        .set(jnp.arange(B, dtype=jnp.int32))
+    )
+
+    def correction(hb, ab, Lb, pb):
+        s = jnp.clip((x - hb) @ ab / Lb, 0.0, 1.0)  # (V,)
+        R = _axis_rotation(ab, -(1.0 - s) * pb)  # (V, 3, 3)
+        t = hb - jnp.einsum("vab,b->va", R, hb)
+        return jnp.concatenate([R, t[:, :, None]], axis=-1)  # (V, 3, 4)
+
+    C = jax.vmap(correction)(h, a, L, phi)  # (B, V, 3, 4)
+    eye = jnp.broadcast_to(jnp.eye(3, 4, dtype=dt), (1, x.shape[0], 3, 4))
+    C = jnp.concatenate([C, eye])  # (B + 1, V, 3, 4); slot B = no correction
+    T34 = T[:, :3, :]
+    M = jnp.zeros((x.shape[0], 3, 4), dt)
+    rows = jnp.arange(x.shape[0])
+    for k in range(idx.shape[1]):
+        j = idx[:, k]
+        Ck = C[slot[j], rows]  # (V, 3, 4)
+        Ak = T34[j]
+        Mk = jnp.concatenate(
+            [Ak[:, :, :3] @ Ck[:, :, :3], (Ak[:, :, :3] @ Ck[:, :, 3:]) + Ak[:, :, 3:]], axis=-1
+        )
+        M = M + w[:, k, None, None] * Mk
+    return M[:, :, 0] * x[:, 0:1] + M[:, :, 1] * x[:, 1:2] + M[:, :, 2] * x[:, 2:3] + M[:, :, 3]
