@@ -916,7 +916,7 @@ def find_mocap_dir() -> Path | None:
     env = os.environ.get("BODYPRIOR_MOCAP_DIR")
     if env:
         return Path(env) if Path(env).is_dir() else None
-    candidate = Path(__file__).resolve().parents[3] / "shared" / "data" / "mocap"
+    candidate = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"  # ../shared
     return candidate if candidate.is_dir() else None
 
 

@@ -22,12 +22,18 @@ Angles follow the paper: `â = ψ − ψ_r` with `ψ` the interior dihedral angl
 Kernels work on one mesh; batch with `jax.vmap`. Units: metres and radians.
 """
 
+from ._data import KINDS as KINDS
+from ._data import PanomanData as PanomanData
+from ._data import expression_set as expression_set
+from ._data import gesture_poses as gesture_poses
+from ._data import make_panoman_data as make_panoman_data
 from ._decode import (
     DecodedMesh as DecodedMesh,
 )
 from ._decode import (
     Decoder as Decoder,
 )
+from ._decode import decoder_with_reference as decoder_with_reference
 from ._decode import (
     nearest_rotation as nearest_rotation,
 )
@@ -37,6 +43,23 @@ from ._decode import (
 from ._decode import (
     rla_decode as rla_decode,
 )
+from ._fit import JointRegressor as JointRegressor
+from ._fit import LbsModel as LbsModel
+from ._fit import PanoManFit as PanoManFit
+from ._fit import fit_joint_regressor as fit_joint_regressor
+from ._fit import fit_lbs as fit_lbs
+from ._fit import fit_panoman as fit_panoman
+from ._fit import make_lbs_model as make_lbs_model
+from ._model import MLP as MLP
+from ._model import PARTS as PARTS
+from ._model import PanoManModel as PanoManModel
+from ._model import evaluate as evaluate
+from ._model import fit_mlp as fit_mlp
+from ._model import load_panoman as load_panoman
+from ._model import model_targets as model_targets
+from ._model import pose_features as pose_features
+from ._model import save_panoman as save_panoman
+from ._model import train_panoman as train_panoman
 from ._rla import (
     RLA as RLA,
 )
@@ -75,6 +98,29 @@ from ._splocs import splocs_project as splocs_project
 from ._splocs import splocs_reconstruct as splocs_reconstruct
 
 __all__ = [
+    "JointRegressor",
+    "LbsModel",
+    "PanoManFit",
+    "fit_joint_regressor",
+    "fit_lbs",
+    "fit_panoman",
+    "make_lbs_model",
+    "KINDS",
+    "MLP",
+    "PARTS",
+    "PanoManModel",
+    "PanomanData",
+    "decoder_with_reference",
+    "evaluate",
+    "expression_set",
+    "fit_mlp",
+    "gesture_poses",
+    "load_panoman",
+    "make_panoman_data",
+    "model_targets",
+    "pose_features",
+    "save_panoman",
+    "train_panoman",
     "RLA",
     "DecodedMesh",
     "Decoder",

@@ -678,3 +678,26 @@ def rla_decode(
     rla = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), rla)
     sol = _decode_jit(decoder, rla, align_to, float(frame_rtol), frame_max_steps)
     return _check(sol, throw, "rla_decode")
+
+
+def decoder_with_reference(decoder: Decoder, reference: Float[ArrayLike, "V 3"]) -> Decoder:
+    """The same decoder for another reference mesh of its topology (traceable, differentiable).
+
+    Everything [`bodyprior.panoman.prepare_decoder`][] derives from the topology (dual tree, fans,
+    the two sparse factorisations) is kept; the reference lengths, angles and the anchor's frame
+    and position are recomputed from `reference` `(V, 3)` (metres). This is how PanoMan decodes
+    relative to the shaped rest `B_S(α)` of every `α` (eq. 4) without host work per shape.
+    """
+    ref = jnp.asarray(reference, decoder.ref_lengths.dtype)
+    top = decoder.topology
+    corners = ref[top.faces[decoder.anchor_face]][None]
+    return eqx.tree_at(
+        lambda d: (d.ref_lengths, d.ref_angles, d.anchor_frame, d.anchor_position),
+        decoder,
+        (
+            edge_lengths(ref, top),
+            interior_dihedral_angles(ref, top),
+            _face_frames(corners)[0],
+            ref[decoder.anchor_vertex],
+        ),
+    )

@@ -1,0 +1,361 @@
+"""Reconstruction from sparse constraints (paper §5): the LBS model on PanoMan's shape space (the
+SMPL stand-in, used for IK initialisation and as the baseline), the posed joint regressor, and
+`fit_panoman` — shell energy plus constraints over vertices and parameters jointly, by block
+coordinate descent face → body → hand, initialised by IK → θ → β(θ) → g (§5.3).
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from .._kinematics import forward_kinematics
+from .._rotations import axis_angle_to_matrix
+from .._skinning import lbs
+from .._solution import RESULTS, Solution
+from .._validate import check_array
+from ._data import PanomanData
+from ._model import PARTS, PanoManModel, _evaluate, model_targets, pose_features
+from ._rla import RLA
+from ._solve import (
+    ShellConstraints,
+    ShellSolver,
+    prepare_shell_solver,
+    shell_solve,
+)
+
+__all__ = [
+    "JointRegressor",
+    "LbsModel",
+    "PanoManFit",
+    "fit_joint_regressor",
+    "fit_lbs",
+    "fit_panoman",
+    "make_lbs_model",
+]
+
+
+class JointRegressor(eqx.Module):
+    """Joints as a fixed linear function of the vertices: `J_j = Σ_m w_jm v_{i_jm}` (rows sum
+    to 1). `indices`, `weights` `(J, M)`."""
+
+    indices: Int[Array, "J M"]
+    weights: Float[Array, "J M"]
+
+    def __call__(self, vertices: Float[ArrayLike, "V 3"]) -> Float[Array, "J 3"]:
+        return jnp.einsum("jm,jmd->jd", self.weights, jnp.asarray(vertices)[self.indices])
+
+
+def fit_joint_regressor(
+    vertices: Float[ArrayLike, "N V 3"],
+    joints: Float[ArrayLike, "N J 3"],
+    *,
+    n_neighbors: int = 32,
+    ridge: float = 1e-4,
+) -> JointRegressor:
+    """Fits a joint regressor on posed meshes with their exact joints (host, least squares).
+
+    Each joint uses the `n_neighbors` vertices nearest to it on the first mesh; weights minimise
+    `Σ_n ‖Σ_m w_m v_nm − J_n‖² + ridge Σ_m w_m²` subject to `Σ_m w_m = 1` (so the regressor
+    commutes with translations). Fit on posed generator output, not at rest (panoman_v2 §6.11).
+    """
+    V = np.asarray(vertices, np.float64)
+    Jt = np.asarray(joints, np.float64)
+    check_array(V, "vertices", ("N", None, 3))
+    check_array(Jt, "joints", (V.shape[0], None, 3))
+    idx = np.zeros((Jt.shape[1], n_neighbors), np.int32)
+    W = np.zeros((Jt.shape[1], n_neighbors))
+    for j in range(Jt.shape[1]):
+        near = np.argsort(np.linalg.norm(V[0] - Jt[0, j], axis=1))[:n_neighbors]
+        X = V[:, near].transpose(0, 2, 1).reshape(-1, n_neighbors)  # (N·3, M)
+        y = Jt[:, j].reshape(-1)
+        G = X.T @ X + ridge * len(y) * 1e-4 * np.eye(n_neighbors)
+        # KKT for Σ w = 1
+        K = np.block(
+            [[G, np.ones((n_neighbors, 1))], [np.ones((1, n_neighbors)), np.zeros((1, 1))]]
+        )
+        sol = np.linalg.solve(K, np.concatenate([X.T @ y, [1.0]]))
+        idx[j], W[j] = near, sol[:n_neighbors]
+    return JointRegressor(jnp.asarray(idx), jnp.asarray(W))
+
+
+# --------------------------------------------------------------------------------------------------
+# LBS model on the same shape space (the SMPL stand-in)
+
+
+class LbsModel(eqx.Module):
+    """`LBS(B_S(α), FK(θ, J(α)))`: PanoMan's shape space with `cmu_mb` skinning.
+
+    - `shape_mean` `(V, 3)`, `shape_basis` `(P, V, 3)`: as the PanoMan model's (eq. 2).
+    - `joint_mean` `(J, 3)`, `joint_basis` `(P, J, 3)`: rest joints linear in α (least squares on
+      the training identities' exact rest joints).
+    - `skin_indices`, `skin_weights` `(V, K)`: the `cmu_mb` weights on this vertex subset.
+    - `parents`: static bone tree.
+    """
+
+    shape_mean: Float[Array, "V 3"]
+    shape_basis: Float[Array, "P V 3"]
+    joint_mean: Float[Array, "J 3"]
+    joint_basis: Float[Array, "P J 3"]
+    skin_indices: Int[Array, "V K"]
+    skin_weights: Float[Array, "V K"]
+    parents: tuple[int, ...] = eqx.field(static=True)
+
+    def __call__(self, alpha, pose, translation, *, skinning: str = "lbs"):
+        """Vertices `(V, 3)` and joints `(J, 3)`; `pose` `(J, 3)` axis-angle, `translation`
+        `(3,)` metres."""
+        rest = self.shape_mean + jnp.tensordot(alpha, self.shape_basis, axes=1)
+        j = self.joint_mean + jnp.tensordot(alpha, self.joint_basis, axes=1)
+        R = jax.vmap(axis_angle_to_matrix)(pose)
+        A, posed = forward_kinematics(self.parents, R, j, translation)
+        from .._skinning import dqs
+
+        fn = lbs if skinning == "lbs" else dqs
+        return fn(rest, self.skin_indices, self.skin_weights, A), posed
+
+
+def make_lbs_model(model: PanoManModel, data: PanomanData, body) -> LbsModel:
+    """The LBS baseline on `model`'s shape space: rest joints regressed on α from the identities of
+    `data`; `body` the `cmu_mb` [`bodyprior.DefaultBody`][] (skin weights, bone tree)."""
+    B = np.asarray(model.shape_basis, np.float64).reshape(model.shape_basis.shape[0], -1)
+    rest = np.asarray(data.rest, np.float64).reshape(data.rest.shape[0], -1)
+    alpha = np.linalg.lstsq(B.T, (rest - np.asarray(model.shape_mean).reshape(-1)).T, rcond=None)[
+        0
+    ].T
+    Jr = np.asarray(data.rest_joints, np.float64).reshape(rest.shape[0], -1)
+    X = np.concatenate([np.ones((alpha.shape[0], 1)), alpha], 1)
+    coef = np.linalg.lstsq(X, Jr, rcond=None)[0]
+    J = body.n_joints
+    vm = np.asarray(data.vertex_map)
+    return LbsModel(
+        shape_mean=model.shape_mean,
+        shape_basis=model.shape_basis,
+        joint_mean=jnp.asarray(coef[0].reshape(J, 3)),
+        joint_basis=jnp.asarray(coef[1:].reshape(-1, J, 3)),
+        skin_indices=jnp.asarray(np.asarray(body.rig.skin_indices)[vm]),
+        skin_weights=jnp.asarray(np.asarray(body.rig.skin_weights, np.float64)[vm]),
+        parents=body.parents,
+    )
+
+
+def _lbs_residuals(y, args):
+    lbsm, cons, prior = args
+    alpha, pose, t = y
+    v, j = lbsm(alpha, pose, t)
+    rh = jnp.sqrt(cons.handle_weight)[:, None] * (v[cons.handle_index] - cons.handle_position)
+    rj = jnp.sqrt(cons.joint_weight)[:, None] * (
+        jnp.einsum("jm,jmd->jd", cons.joint_coeffs, j[cons.joint_indices]) - cons.joint_position
+    )
+    return (rh.ravel(), rj.ravel(), prior[0] * alpha, prior[1] * pose[1:].ravel())
+
+
+@eqx.filter_jit
+def _fit_lbs(lbsm, cons, prior, y0, max_steps):
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10, linear_solver=lx.Normal(lx.Cholesky()))
+    return optx.least_squares(_lbs_residuals, solver, y0, (lbsm, cons, prior),
+                              max_steps=max_steps, throw=False)  # fmt: skip
+
+
+def fit_lbs(
+    lbs_model: LbsModel,
+    constraints: ShellConstraints,
+    *,
+    alpha_prior: float = 1e-3,
+    pose_prior: float = 1e-3,
+    max_steps: int = 100,
+) -> Solution:
+    """IK of the LBS model to constraints (vertex handles; joint constraints whose `joint_indices`
+    index **joints** of the skeleton here, one joint per row with coefficient 1).
+
+    Levenberg–Marquardt (optimistix, float64) over `(α, θ, t)` from zero, with small Tikhonov
+    priors `alpha_prior`, `pose_prior` on α and the non-root pose. **Returns:** a
+    [`bodyprior.Solution`][] with `value` `(α (P,), pose (J, 3), translation (3,))` and `stats`
+    `steps`, `vertices`, `joints`, `seconds`.
+    """
+    P = lbs_model.shape_basis.shape[0]
+    J = lbs_model.joint_mean.shape[0]
+    y0 = (jnp.zeros(P), jnp.zeros((J, 3)), jnp.zeros(3))
+    if constraints.joint_position.shape[0]:
+        y0 = (
+            y0[0],
+            y0[1],
+            jnp.mean(constraints.joint_position, 0) - jnp.mean(lbs_model.joint_mean, 0),
+        )
+    prior = (jnp.sqrt(alpha_prior), jnp.sqrt(pose_prior))
+    t0 = time.perf_counter()
+    sol = _fit_lbs(lbs_model, constraints, prior, y0, int(max_steps))
+    alpha, pose, t = sol.value
+    v, j = lbs_model(alpha, pose, t)
+    ok = bool(jnp.all(jnp.isfinite(v)))
+    return Solution(
+        (alpha, pose, t),
+        RESULTS.successful if ok else RESULTS.nonfinite,
+        dict(
+            steps=int(sol.stats["num_steps"]),
+            vertices=v,
+            joints=j,
+            seconds=time.perf_counter() - t0,
+        ),  # fmt: skip
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# PanoMan fit
+
+
+class PanoManFit(eqx.Module):
+    """Result of [`bodyprior.panoman.fit_panoman`][]: `vertices` `(V, 3)` m, `alpha` `(P,)`,
+    `beta_lengths`, `beta_angles` `(K,)`; `init_vertices` the decoded initialisation."""
+
+    vertices: Float[Array, "V 3"]
+    alpha: Float[Array, " P"]
+    beta_lengths: Float[Array, " K"]
+    beta_angles: Float[Array, " K"]
+    init_vertices: Float[Array, "V 3"]
+
+
+class _BlockTargets(eqx.Module):
+    """`targets(params)` for one block: the block's β (and α for the body block) move."""
+
+    model: PanoManModel
+    alpha: Array
+    beta_lengths: Array
+    beta_angles: Array
+    start: int = eqx.field(static=True)
+    stop: int = eqx.field(static=True)
+    correct: bool = eqx.field(static=True)
+    with_alpha: bool = eqx.field(static=True)
+
+    def _full(self, params):
+        bl = self.beta_lengths.at[self.start : self.stop].set(params["bl"])
+        ba = self.beta_angles.at[self.start : self.stop].set(params["ba"])
+        a = params["alpha"] if self.with_alpha else self.alpha
+        return a, bl, ba
+
+    def __call__(self, params) -> RLA:
+        _, bl, ba = self._full(params)
+        return model_targets(self.model, bl, ba, correct=self.correct)
+
+    def rest(self, params):
+        a, _, _ = self._full(params)
+        return self.model.shape(a)
+
+
+class _Rest(eqx.Module):
+    targets: _BlockTargets
+
+    def __call__(self, params):
+        return self.targets.rest(params)
+
+
+def fit_panoman(
+    model: PanoManModel,
+    constraints: ShellConstraints,
+    *,
+    init: tuple | None = None,
+    theta: Float[ArrayLike, "J 3"] | None = None,
+    joint_names: tuple[str, ...] | None = None,
+    blocks: tuple[str, ...] = ("face", "body", "hand"),
+    correct: bool = True,
+    weight: float = 1e6,
+    max_steps: int = 8,
+    param_weight: float = 1e-4,
+    solver: ShellSolver | None = None,
+    align_to: Float[ArrayLike, "V 3"] | None = None,
+) -> Solution:
+    """Reconstructs a full body from sparse constraints (paper §5; module docstring).
+
+    **Arguments:**
+
+    - `model`: a trained [`bodyprior.panoman.PanoManModel`][].
+    - `constraints`: [`bodyprior.panoman.shell_constraints`][] on the model's vertices (handles,
+      joints through a regressor, point-to-plane surface points, parameter editing).
+    - `init`: `(α, β_L, β_A)` to start from; default α = 0 and β from `theta`.
+    - `theta`: a `cmu_mb` axis-angle pose `(J, 3)` (e.g. from IK, [`bodyprior.panoman.fit_lbs`][],
+      or motion data) giving the body β by the β MLP (§5.3); `joint_names` the rig's names.
+    - `blocks`: the block order (paper: face, body, hand); each block moves all vertices and its
+      part's β (the body block also α); `max_steps` LM iterations per block.
+    - `correct`: use the correction MLP (eq. 5); `False` is the eq. 4 baseline.
+    - `weight`: λ (eq. 6); `param_weight`: a weak editing prior keeping β near its start.
+    - `solver`: a prepared [`bodyprior.panoman.ShellSolver`][] (prepared here if omitted).
+    - `align_to`: `(V, 3)` mesh the decoded initialisation is placed on rigidly (e.g. the IK
+      mesh); default the decoder's anchor frame.
+
+    **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.PanoManFit`][] and `stats`:
+    per block `steps`, `energy0`, `energy`, `seconds`; `init_s` (β MLP + g).
+    """
+    top = model.topology
+    K = model.n_components
+    P = model.shape_basis.shape[0]
+    for b in blocks:
+        if b not in PARTS:
+            raise ValueError(f"`blocks` entries must be in {PARTS}, got {b!r}.")
+    t0 = time.perf_counter()
+    if init is not None:
+        alpha, bl, ba = (jnp.asarray(x, jnp.float64) for x in init)
+        check_array(alpha, "init[0] (alpha)", (P,))
+        check_array(bl, "init[1] (beta_lengths)", (K,))
+        check_array(ba, "init[2] (beta_angles)", (K,))
+    else:
+        alpha = jnp.zeros(P)
+        bl, ba = (jnp.asarray(x, jnp.float64) for x in model.neutral())
+        if theta is not None:
+            if model.beta_mlp is None:
+                raise ValueError("`theta` needs a model with a beta MLP.")
+            if joint_names is None:
+                raise ValueError("`joint_names` (of the cmu_mb rig) is required with `theta`.")
+            check_array(theta, "theta", (len(joint_names), 3))
+            b = model.beta_mlp(pose_features(theta, joint_names)).astype(jnp.float64)
+            kb = model.part_sizes[0]
+            bl, ba = model.with_body(b[:kb], b[kb:])
+    align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
+    dec = _evaluate_jit_(model, alpha, bl, ba, correct, align)
+    V = dec.value.vertices
+    V_init = V
+    stats = {"init_s": time.perf_counter() - t0, "blocks": []}
+    if solver is None:
+        solver = prepare_shell_solver(top)
+    for part in blocks:
+        s = model.part_slice(part)
+        tg = _BlockTargets(model, alpha, bl, ba, s.start, s.stop, correct, part == "body")
+        params0 = {"bl": bl[s], "ba": ba[s]}
+        if part == "body":
+            params0["alpha"] = alpha
+        # weak editing prior: β of this block near its start (the paper's E_C of eq. 9, λ-scaled)
+        flat0 = jnp.concatenate([params0[k] for k in sorted(params0)])
+        n = flat0.shape[0]
+        cons = eqx.tree_at(
+            lambda c: (c.param_index, c.param_value, c.param_weight),
+            constraints,
+            (jnp.arange(n), flat0, jnp.full(n, param_weight)),
+        ) if constraints.param_index.shape[0] == 0 else constraints  # fmt: skip
+        tb = time.perf_counter()
+        sol = shell_solve(tg, _Rest(tg), params0, V, top, cons, solver=solver, weight=weight,
+                          max_steps=max_steps, throw=False)  # fmt: skip
+        fit = sol.value
+        p = fit.params
+        bl = bl.at[s].set(p["bl"])
+        ba = ba.at[s].set(p["ba"])
+        if part == "body":
+            alpha = p["alpha"]
+        V = fit.vertices
+        stats["blocks"].append(dict(part=part, steps=int(sol.stats["steps"]),
+                                    energy0=float(sol.stats["energy0"]),
+                                    energy=float(sol.stats["energy"]),
+                                    seconds=time.perf_counter() - tb))  # fmt: skip
+    ok = bool(jnp.all(jnp.isfinite(V)))
+    return Solution(
+        PanoManFit(V, alpha, bl, ba, V_init),
+        RESULTS.successful if ok else RESULTS.nonfinite,
+        stats,
+    )
+
+
+_evaluate_jit_ = eqx.filter_jit(_evaluate)

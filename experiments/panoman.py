@@ -1,0 +1,328 @@
+"""PanoMan on open data (Wang et al. 2021, §4–6): training, Fig. 7, Fig. 18 (C1), twist, Table 1.
+
+1. **Data** (`--seed`): H = H_B ∪ H_F ∪ H_H by `bodyprior.panoman.make_panoman_data` on one sex
+   (`--sex`, male by default): CMU train clips on train identities, posed by twist-distributed
+   skinning; 39 fixed expressions; canonical + random gestures. The **test set** uses held-out
+   clips (`split_by_clip`, 20 %) on fresh identities, from the same generator (like DFAUST's
+   train/test split). The decimated 6,449-vertex topology by default (`--mesh full` for 13,380).
+2. **Model** (`train_panoman`): shape PCA of 10 PCs, six SPLOCS decompositions with per-part
+   radii, neutral coefficients, correction MLP (low-rank output on body-component edges), β(θ) MLP.
+3. **Fig. 7** (error vs K): body decompositions at several K; RLA projection error and the vertex
+   error after g of held-out body meshes (rigidly aligned), mm.
+4. **Fig. 18, C1** (31 joints + 10 torso points) on held-out frames: PanoMan (eq. 5), the baseline
+   without the MLP (eq. 4), and the LBS model on the same shape space fitted to the same
+   constraints (the SMPL stand-in; LBS is not the test data's generator). Per-vertex error vs
+   ground truth: mean and max per frame, averaged; mm.
+5. **Twist** (Figs. 13–14, quantitative): a left-wrist twist of 180° on a held-out identity, ground
+   truth by the twist generator; LBS and DQS posed with the true pose, PanoMan fitted to 31 joints
+   + 5 forearm/hand markers; minimum forearm cross-section area ratio and vertex error.
+6. **Table 1**: seconds per stage (IK, β MLP + g, face, body, hand blocks).
+
+Writes `metrics.json` and PNGs to `--out`. `--quick` is the CI size (minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import bodyprior as bp  # noqa: E402
+import bodyprior.panoman as pm  # noqa: E402
+
+QUICK = dict(
+    n_body_ids=8, poses_per_id=6, n_face_ids=3, n_hand_ids=5, gestures_per_id=8,
+    k=(24, 16, 12), fig7_k=(8, 24), splocs_iter=2, mlp_steps=300, mlp_hidden=256, rank=32,
+    n_test_ids=2, test_poses=1, fit_steps=2, n_shape_rest=200,
+)  # fmt: skip
+FULL = dict(
+    n_body_ids=300, poses_per_id=20, n_face_ids=100, n_hand_ids=300, gestures_per_id=20,
+    k=(250, 100, 50), fig7_k=(25, 50, 100, 150, 200, 250, 300, 400), splocs_iter=10,
+    mlp_steps=6000, mlp_hidden=1500, rank=256, n_test_ids=10, test_poses=5, fit_steps=8,
+    n_shape_rest=2000,
+)  # fmt: skip
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="CI sizes (minutes)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sex", type=int, default=0, help="0 male, 1 female")
+    p.add_argument("--mesh", choices=("decimated", "full"), default="decimated")
+    p.add_argument("--mocap", default=None, help="CMU BVH folder (default ../shared/data/mocap)")
+    p.add_argument("--no-progress", action="store_true")
+    for k, v in FULL.items():
+        if isinstance(v, int):
+            p.add_argument("--" + k.replace("_", "-"), type=int, default=None, help="override")
+    return p.parse_args(argv)
+
+
+def _err_mm(v, gt):
+    d = np.linalg.norm(np.asarray(v) - np.asarray(gt), axis=1) * 1000.0
+    return float(d.mean()), float(d.max())
+
+
+def main(argv=None) -> dict:
+    a = parse_args(argv)
+    cfg = dict(QUICK if a.quick else FULL)
+    for k in cfg:
+        v = getattr(a, k, None)
+        if v is not None:
+            cfg[k] = v
+    os.makedirs(a.out, exist_ok=True)
+    prog = not a.no_progress
+    key = jax.random.key(a.seed)
+    metrics: dict = {"config": {**cfg, "mesh": a.mesh, "sex": a.sex, "quick": a.quick}}
+    T: dict = {}
+
+    # ---------------------------------------------------------------- data
+    t = time.perf_counter()
+    mocap = a.mocap or bp.find_mocap_dir()
+    if mocap is None:
+        raise SystemExit("CMU mocap not found: pass --mocap or set BODYPRIOR_MOCAP_DIR.")
+    poses = bp.load_mocap(mocap, progress=prog)
+    train_poses, test_poses = bp.split_by_clip(poses, 0.2, seed=a.seed)
+    if a.mesh == "decimated":
+        vm, faces = bp.load_decimated()
+    else:
+        body0 = bp.load_default_body()
+        vm, faces = np.arange(body0.n_vertices), np.asarray(body0.faces)
+    top = bp.Topology.from_faces(faces)
+    body = bp.load_default_body("cmu_mb", local_changes=True, facial_actions=True)
+    hand_body = bp.load_default_body("game_engine", local_changes=True)
+    k_train, k_test, k_model, k_shape = jax.random.split(key, 4)
+    data = pm.make_panoman_data(
+        k_train, train_poses, n_body_identities=cfg["n_body_ids"],
+        poses_per_identity=cfg["poses_per_id"], n_face_identities=cfg["n_face_ids"],
+        n_hand_identities=cfg["n_hand_ids"], gestures_per_identity=cfg["gestures_per_id"],
+        sex=a.sex, vertex_map=vm, body=body, hand_body=hand_body, progress=prog,
+    )  # fmt: skip
+    test = pm.make_panoman_data(
+        k_test, test_poses, n_body_identities=cfg["n_test_ids"],
+        poses_per_identity=cfg["test_poses"], n_face_identities=0, n_hand_identities=0,
+        gestures_per_identity=0, sex=a.sex, vertex_map=vm, body=body, hand_body=hand_body,
+        progress=prog,
+    )  # fmt: skip
+    # shape PCA on many rest bodies of this sex (eq. 2; the paper uses SMPL's 10 PCs)
+    pop = bp.sample_population(2 * cfg["n_shape_rest"], key=k_shape, body=body,
+                               pose_jitter_deg=0.0, progress=prog)  # fmt: skip
+    keep = np.flatnonzero(np.asarray(pop.sex) == a.sex)[: cfg["n_shape_rest"]]
+    shape_rest = np.asarray(pop.vertices)[keep][:, vm]
+    del pop
+    metrics["data"] = {"train": data.counts(), "test": test.counts(),
+                       "n_vertices": top.n_vertices, "n_edges": top.n_edges}  # fmt: skip
+    T["data_s"] = time.perf_counter() - t
+
+    # ---------------------------------------------------------------- model
+    t = time.perf_counter()
+    sol = pm.train_panoman(
+        data, top, key=k_model, n_components=tuple(cfg["k"]), shape_rest=shape_rest,
+        splocs_iterations=cfg["splocs_iter"], correction_hidden=cfg["mlp_hidden"],
+        correction_rank=cfg["rank"], correction_steps=cfg["mlp_steps"],
+        beta_steps=cfg["mlp_steps"], progress=prog,
+    )  # fmt: skip
+    model = sol.value
+    st = sol.stats
+    T["train_s"] = time.perf_counter() - t
+    metrics["train"] = {k: st[k] for k in ("shape_explained", "fit_rla_error", "correction",
+                                           "beta_mlp", "encode_s")}  # fmt: skip
+    pm.save_panoman(model, os.path.join(a.out, "panoman_model.npz"), float16=True)
+    metrics["model_file_mb"] = os.path.getsize(os.path.join(a.out, "panoman_model.npz")) / 1e6
+
+    # alpha of a rest mesh (least squares in the shape space)
+    B = np.asarray(model.shape_basis).reshape(model.shape_basis.shape[0], -1)
+
+    def alpha_of(rest):
+        return np.linalg.lstsq(B.T, (np.asarray(rest) - np.asarray(model.shape_mean)).ravel(),
+                               rcond=None)[0]  # fmt: skip
+
+    # ---------------------------------------------------------------- Fig. 7
+    t = time.perf_counter()
+    fig7 = {}
+    tb = np.flatnonzero(np.asarray(test.kind) == 0)
+    XL_t, XA_t = pm._model._encode_all(test, top, 16, False)
+    sel = np.asarray(data.kind) == 0
+    XL, XA = pm._model._encode_all(data.subset(np.flatnonzero(sel)), top, 16, False)
+    for K in cfg["fig7_k"]:
+        row = {}
+        mats = {}
+        for Y, X, Xt in (("L", XL, XL_t), ("A", XA, XA_t)):
+            d = pm.splocs(
+                X,
+                np.asarray(model.shape_mean),
+                top,
+                n_components=K,
+                d_min=0.10,
+                d_max=0.45,
+                n_iterations=cfg["splocs_iter"],
+                progress=False,
+            ).value
+            M = np.asarray(d.components[:, :, 0], np.float64)
+            mean = np.asarray(d.mean[:, 0], np.float64)
+            b = pm._model._project(M, Xt[tb] - mean)
+            row[f"rla_err_{Y}"] = float(np.abs(Xt[tb] - mean - b @ M).mean())
+            mats[Y] = (mean, M, b)
+        errs = []
+        for n, i in enumerate(tb):
+            rla = pm.RLA(jnp.asarray(mats["L"][0] + mats["L"][2][n] @ mats["L"][1]),
+                         jnp.asarray(mats["A"][0] + mats["A"][2][n] @ mats["A"][1]))  # fmt: skip
+            rest = np.asarray(test.rest[int(test.identity[i])], np.float64)
+            gt = np.asarray(test.vertices[i], np.float64)
+            v = pm.rla_decode(rla, rest, top, align_to=gt).value.vertices
+            errs.append(_err_mm(v, gt))
+        row["vertex_err_mean_mm"] = float(np.mean([e[0] for e in errs]))
+        row["vertex_err_max_mm"] = float(np.mean([e[1] for e in errs]))
+        fig7[int(K)] = row
+    metrics["fig7_body"] = fig7
+    metrics["fig7_body_vertex_err_mm_at_k"] = {k: v["vertex_err_mean_mm"] for k, v in fig7.items()}
+    T["fig7_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+
+    # ---------------------------------------------------------------- Fig. 18, C1
+    lbsm = pm.make_lbs_model(model, data, body)
+    reg = pm.fit_joint_regressor(np.asarray(data.vertices)[sel], np.asarray(data.joints)[sel])
+    rng = np.random.default_rng(a.seed)
+    # 10 torso points: vertices skinned mostly to the spine bones, picked once on the template
+    spine = [body.joint_names.index(n) for n in ("Hips", "LowerBack", "Spine", "Spine1")]
+    si = np.asarray(body.rig.skin_indices)[vm]
+    sw = np.asarray(body.rig.skin_weights)[vm]
+    dom0 = si[np.arange(si.shape[0]), sw.argmax(1)]
+    torso = np.flatnonzero(np.isin(dom0, spine) & (sw.max(1) > 0.95))
+    torso = rng.choice(torso, 10, replace=False)
+    solver = pm.prepare_shell_solver(top)
+    rec = {"panoman": [], "baseline": [], "lbs": []}
+    stages = []
+    for i in tb:
+        gt = np.asarray(test.vertices[i], np.float64)
+        gj = np.asarray(test.joints[i], np.float64)
+        J = gj.shape[0]
+        # LBS / IK on joints + torso points
+        cl = pm.shell_constraints(
+            handles=(torso, gt[torso]),
+            joints=(np.arange(J)[:, None], np.ones((J, 1)), gj),
+        )
+        tk = time.perf_counter()
+        ik = pm.fit_lbs(lbsm, cl)
+        t_ik = time.perf_counter() - tk
+        alpha0, pose0, _ = ik.value
+        rec["lbs"].append(_err_mm(ik.stats["vertices"], gt))
+        # PanoMan: joints through the posed regressor
+        cp = pm.shell_constraints(
+            handles=(torso, gt[torso]),
+            joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
+        )
+        for name, corr in (("panoman", True), ("baseline", False)):
+            beta_mlp = model.beta_mlp(pm.pose_features(pose0, body.joint_names))
+            kb = model.part_sizes[0]
+            bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
+            fit = pm.fit_panoman(
+                model, cp, init=(np.asarray(alpha0), np.asarray(bl), np.asarray(ba)),
+                correct=corr, solver=solver, max_steps=cfg["fit_steps"],
+                align_to=np.asarray(ik.stats["vertices"]),
+            )  # fmt: skip
+            rec[name].append(_err_mm(fit.value.vertices, gt))
+            if corr:
+                stages.append(dict(ik_s=t_ik, init_s=fit.stats["init_s"],
+                                   **{b["part"] + "_s": b["seconds"] for b in fit.stats["blocks"]},
+                                   **{b["part"] + "_steps": b["steps"] for b in
+                                      fit.stats["blocks"]}))  # fmt: skip
+    for name, v in rec.items():
+        metrics[f"recon_c1_mean_mm_{name}"] = float(np.mean([e[0] for e in v]))
+        metrics[f"recon_c1_max_mm_{name}"] = float(np.mean([e[1] for e in v]))
+    metrics["table1"] = {k: float(np.mean([s[k] for s in stages])) for k in stages[0]}
+    metrics["fit_total_s_mean"] = float(
+        np.mean([sum(v for k, v in s.items() if k.endswith("_s")) for s in stages])
+    )
+
+    T["recon_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    # ---------------------------------------------------------------- twist
+    ident = 0
+    phen = np.asarray(test.phenotypes[ident])
+    lc = np.asarray(test.local_changes[ident])
+    _, rj = bp.rest_shape(body, phen, lc)
+    fa, hd = body.joint_names.index("LeftForeArm"), body.joint_names.index("LeftHand")
+    ax = np.asarray(rj[hd] - rj[fa])
+    Lfa = float(np.linalg.norm(ax))
+    ax = ax / Lfa
+    pose = np.zeros((body.n_joints, 3))
+    pose[hd] = ax * np.deg2rad(179.9)
+    ts = np.arange(0.05, 1.06, 0.1)
+    rest_v = np.asarray(bp.evaluate(body, phen, local_changes=lc)[0])[vm]
+    A0 = bp.cross_section_areas(rest_v, faces, np.asarray(rj[fa]), ax, ts * Lfa)
+    tw = {}
+    gt_v, gt_j = bp.evaluate(body, phen, pose, local_changes=lc, skinning="twist")
+    gt_v = np.asarray(gt_v)[vm]
+    for sk in ("lbs", "dqs"):
+        v = np.asarray(bp.evaluate(body, phen, pose, local_changes=lc, skinning=sk)[0])[vm]
+        tw[sk] = v
+    tw["ground_truth"] = gt_v
+    # PanoMan fitted to joints + 5 markers (3 on the back of the hand, 2 on the distal forearm)
+    dom = si[np.arange(si.shape[0]), sw.argmax(1)]
+    hand_v = np.flatnonzero((dom == hd) & (sw.max(1) > 0.9))
+    fore_v = np.flatnonzero((dom == fa) & (sw.max(1) > 0.9))
+    marks = np.concatenate(
+        [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False)]
+    )
+    gj = np.asarray(gt_j)
+    cp = pm.shell_constraints(
+        handles=(marks, gt_v[marks]),
+        joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
+    )
+    alpha = alpha_of(rest_v)
+    beta_mlp = model.beta_mlp(pm.pose_features(pose, body.joint_names))
+    kb = model.part_sizes[0]
+    bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
+    for name, corr in (("panoman", True), ("baseline", False)):
+        fit = pm.fit_panoman(model, cp, init=(alpha, np.asarray(bl), np.asarray(ba)),
+                             correct=corr, solver=solver, max_steps=cfg["fit_steps"],
+                             align_to=gt_v)  # fmt: skip
+        tw[name] = np.asarray(fit.value.vertices)
+    twist = {}
+    for name, v in tw.items():
+        ratio = bp.cross_section_areas(v, faces, np.asarray(rj[fa]), ax, ts * Lfa) / A0
+        twist[name] = dict(min_area_ratio=float(ratio.min()), at_t=float(ts[ratio.argmin()]),
+                           vertex_err_mean_mm=_err_mm(v, gt_v)[0],
+                           vertex_err_max_mm=_err_mm(v, gt_v)[1])  # fmt: skip
+    metrics["twist180"] = twist
+    T["twist_s"] = time.perf_counter() - t
+    for name in ("panoman", "baseline", "lbs", "dqs", "ground_truth"):
+        metrics[f"twist180_min_area_ratio_{name}"] = twist[name]["min_area_ratio"]
+
+    # ---------------------------------------------------------------- figure
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax1 = plt.subplots(1, 2, figsize=(9, 3.5))
+    ks = sorted(fig7)
+    ax1[0].plot(ks, [fig7[k]["vertex_err_mean_mm"] for k in ks], "o-")
+    ax1[0].set_xlabel("body components K")
+    ax1[0].set_ylabel("held-out vertex error after g (mm)")
+    names = ["lbs", "baseline", "panoman"]
+    ax1[1].bar(names, [metrics[f"recon_c1_mean_mm_{n}"] for n in names])
+    ax1[1].set_ylabel("C1 reconstruction, mean error (mm)")
+    fig.tight_layout()
+    fig.savefig(os.path.join(a.out, "panoman_fig7_fig18.png"), dpi=100)
+    plt.close(fig)
+
+    T["total_s"] = sum(T.values())
+    metrics["timing_s"] = T
+    with bp.atomic_open(os.path.join(a.out, "metrics.json"), "w") as f:
+        json.dump(metrics, f, indent=1, default=float)
+    return metrics
+
+
+if __name__ == "__main__":
+    out = main()
+    print(json.dumps({k: v for k, v in out.items() if not isinstance(v, dict)}, indent=1))

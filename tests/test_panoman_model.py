@@ -1,0 +1,140 @@
+"""PanoMan model on open data: training set, model, save/load, reconstruction (tiny sizes)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import bodyprior as bp
+import bodyprior.panoman as pm
+
+jax.config.update("jax_enable_x64", True)
+
+MOCAP = bp.find_mocap_dir()
+needs_data = pytest.mark.skipif(MOCAP is None, reason="shared mocap data not found")
+
+
+def test_expression_set_is_fixed_and_skips_the_tongue():
+    body = bp.load_default_body("cmu_mb", facial_actions=True)
+    W = pm.expression_set(body.face_labels, 39, seed=0)
+    assert W.shape == (39, 52)
+    np.testing.assert_array_equal(W, pm.expression_set(body.face_labels, 39, seed=0))
+    assert np.all(W[:, body.face_labels.index("tongueOut")] == 0)
+    assert np.all((W >= 0) & (W <= 1))
+    assert np.all((W > 0).sum(1) >= 1)
+    np.testing.assert_array_equal((W[:12] > 0).sum(1), 1)  # 12 single units
+
+
+def test_gestures_within_limits_and_fist_closes_towards_the_palm():
+    hb = bp.load_default_body("game_engine")
+    G = pm.gesture_poses(hb, 20, seed=3)
+    assert G.shape == (26, hb.n_joints, 3)
+    deg = np.rad2deg(np.linalg.norm(G, axis=-1))
+    assert deg.max() <= np.hypot(110.0, 20.0) + 1e-6
+    non_finger = [i for i, n in enumerate(hb.joint_names) if n.split("_")[0] not in
+                  ("thumb", "index", "middle", "ring", "pinky")]  # fmt: skip
+    assert np.all(G[:, non_finger] == 0)
+    phen = bp.phenotype_vector()
+    _, j0 = bp.rest_shape(hb, phen)
+    _, j1 = bp.evaluate(hb, phen, G[1])  # fist
+    i1, i2 = hb.joint_names.index("index_01_l"), hb.joint_names.index("index_02_l")
+    hand = np.asarray(j0[hb.joint_names.index("hand_l")])
+    # the PIP joint moves towards the body midline (palms face it in the A-pose)
+    assert abs(float(j1[i2][0])) < abs(float(j0[i2][0])) - 0.005
+    np.testing.assert_allclose(j1[i1], j0[i1], atol=1e-6)
+    assert hand[0] > 0  # left hand on +x
+
+
+@pytest.fixture(scope="module")
+def trained():
+    poses = bp.load_mocap(MOCAP, progress=False)
+    train, _ = bp.split_by_clip(poses, 0.2, seed=0)
+    vm, faces = bp.load_decimated()
+    top = bp.Topology.from_faces(faces)
+    data = pm.make_panoman_data(
+        jax.random.key(0), train, n_body_identities=4, poses_per_identity=3,
+        n_face_identities=2, n_expressions=8, n_hand_identities=3, gestures_per_identity=6,
+        sex=1, vertex_map=vm, progress=False,
+    )  # fmt: skip
+    sol = pm.train_panoman(
+        data, top, key=jax.random.key(1), n_components=(6, 4, 4), splocs_iterations=1,
+        correction_hidden=32, correction_rank=8, correction_steps=200, beta_steps=50,
+        batch=16, progress=False,
+    )  # fmt: skip
+    return data, top, sol
+
+
+@needs_data
+def test_training_set(trained):
+    data, top, _ = trained
+    assert data.counts() == {"body": 12, "face": 16, "hand": 18}
+    assert np.all(np.asarray(data.sex) == 1)
+    v = np.asarray(data.vertices)
+    assert v.shape == (46, top.n_vertices, 3) and np.isfinite(v).all()
+    kind = np.asarray(data.kind)
+    # body meshes move the body, face meshes only the head, gestures only the hands
+    disp = np.linalg.norm(v - np.asarray(data.rest)[np.asarray(data.identity)], axis=-1)
+    assert disp[kind == 0].max() > 0.1
+    assert 0.002 < disp[kind == 1].max() < 0.1
+    assert 0.01 < disp[kind == 2].max() < 0.2
+    assert np.all(np.asarray(data.clip)[kind == 0] >= 0)
+    assert np.all(np.asarray(data.expression)[kind == 1] >= 0)
+
+
+@needs_data
+def test_model_neutral_coefficients_and_mlps(trained):
+    data, top, sol = trained
+    m = sol.value
+    assert m.part_sizes == (6, 4, 4) and m.n_components == 14
+    st = sol.stats
+    assert st["correction"]["rmse_after"] < st["correction"]["rmse_before"]
+    # the rest body: all parts neutral vs all coefficients zero (the mean is a sum of averages)
+    B = np.asarray(m.shape_basis).reshape(m.shape_basis.shape[0], -1)
+    rest = np.asarray(data.rest[0], np.float64)
+    alpha = np.linalg.lstsq(B.T, (rest - np.asarray(m.shape_mean)).ravel(), rcond=None)[0]
+    v_neutral = np.asarray(pm.evaluate(m, alpha, align_to=rest, correct=False).value.vertices)
+    zero = (np.zeros(14), np.zeros(14))
+    v_zero = np.asarray(pm.evaluate(m, alpha, zero, align_to=rest, correct=False).value.vertices)
+    e_neutral = np.linalg.norm(v_neutral - rest, axis=1).mean()
+    e_zero = np.linalg.norm(v_zero - rest, axis=1).mean()
+    assert e_neutral < e_zero
+    rla = pm.model_targets(m, *m.neutral(), correct=False)
+    assert np.abs(np.asarray(rla.lengths)).mean() < np.abs(np.asarray(m.mean_lengths)).mean()
+
+
+@needs_data
+def test_save_load_roundtrip(trained, tmp_path):
+    data, top, sol = trained
+    m = sol.value
+    path = tmp_path / "m.npz"
+    pm.save_panoman(m, path)
+    m2 = pm.load_panoman(path)
+    alpha = np.zeros(m.shape_basis.shape[0])
+    beta = m.with_body(jnp.full(6, 0.3), jnp.full(6, -0.2))
+    v1 = np.asarray(pm.evaluate(m, alpha, beta).value.vertices)
+    v2 = np.asarray(pm.evaluate(m2, alpha, beta).value.vertices)
+    np.testing.assert_allclose(v2, v1, atol=2e-5)  # float32 storage of the components
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, metadata=np.asarray('{"format": "other"}'))
+    with pytest.raises(ValueError, match="format"):
+        pm.load_panoman(bad)
+    with pytest.raises(ValueError, match="alpha"):
+        pm.evaluate(m, np.zeros(3))
+
+
+@needs_data
+def test_fit_panoman_lowers_the_error_from_dense_handles(trained):
+    data, top, sol = trained
+    m = sol.value
+    i = 0  # a body training mesh
+    gt = np.asarray(data.vertices[i], np.float64)
+    rng = np.random.default_rng(0)
+    h = rng.choice(top.n_vertices, 300, replace=False)
+    cons = pm.shell_constraints(handles=(h, gt[h]))
+    fit = pm.fit_panoman(m, cons, theta=np.asarray(data.body_pose[i]),
+                         joint_names=bp.load_default_body().joint_names, max_steps=3,
+                         align_to=gt, blocks=("body",))  # fmt: skip
+    e0 = np.linalg.norm(np.asarray(fit.value.init_vertices) - gt, axis=1).mean()
+    e1 = np.linalg.norm(np.asarray(fit.value.vertices) - gt, axis=1).mean()
+    assert e1 < 0.5 * e0
+    assert fit.stats["blocks"][0]["energy"] < fit.stats["blocks"][0]["energy0"]
