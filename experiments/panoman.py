@@ -15,7 +15,7 @@
    ground truth: mean and max per frame, averaged; mm.
 5. **Twist** (Figs. 13–14, quantitative): a left-wrist twist of 180° on a held-out identity, ground
    truth by the twist generator; LBS and DQS posed with the true pose, PanoMan fitted to 31 joints
-   + 5 forearm/hand markers; minimum forearm cross-section area ratio and vertex error.
+   + 5 forearm/hand markers (+ 5 torso points); minimum forearm cross-section area ratio and vertex error.
 6. **Table 1**: seconds per stage (IK, β MLP + g, face, body, hand blocks).
 
 Writes `metrics.json` and PNGs to `--out`. `--quick` is the CI size (minutes).
@@ -41,7 +41,7 @@ import bodyprior.panoman as pm  # noqa: E402
 QUICK = dict(
     n_body_ids=8, poses_per_id=6, n_face_ids=3, n_hand_ids=5, gestures_per_id=8,
     k=(24, 16, 12), fig7_k=(8, 24), splocs_iter=2, mlp_steps=300, mlp_hidden=256, rank=32,
-    n_test_ids=2, test_poses=1, fit_steps=2, n_shape_rest=200,
+    n_test_ids=1, test_poses=2, fit_steps=2, n_shape_rest=200,
 )  # fmt: skip
 FULL = dict(
     n_body_ids=300, poses_per_id=20, n_face_ids=100, n_hand_ids=300, gestures_per_id=20,
@@ -149,9 +149,10 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
     fig7 = {}
     tb = np.flatnonzero(np.asarray(test.kind) == 0)
-    XL_t, XA_t = pm._model._encode_all(test, top, 16, False)
+    XL_t, XA_t = pm.encode_panoman_data(test, top, chunk=16, progress=False)
     sel = np.asarray(data.kind) == 0
-    XL, XA = pm._model._encode_all(data.subset(np.flatnonzero(sel)), top, 16, False)
+    XL, XA = pm.encode_panoman_data(data.subset(np.flatnonzero(sel)), top, chunk=16,
+                                    progress=False)  # fmt: skip
     for K in cfg["fig7_k"]:
         row = {}
         mats = {}
@@ -168,7 +169,7 @@ def main(argv=None) -> dict:
             ).value
             M = np.asarray(d.components[:, :, 0], np.float64)
             mean = np.asarray(d.mean[:, 0], np.float64)
-            b = pm._model._project(M, Xt[tb] - mean)
+            b = np.asarray(pm.splocs_project(d, Xt[tb]), np.float64)
             row[f"rla_err_{Y}"] = float(np.abs(Xt[tb] - mean - b @ M).mean())
             mats[Y] = (mean, M, b)
         errs = []
@@ -268,10 +269,13 @@ def main(argv=None) -> dict:
     tw["ground_truth"] = gt_v
     # PanoMan fitted to joints + 5 markers (3 on the back of the hand, 2 on the distal forearm)
     dom = si[np.arange(si.shape[0]), sw.argmax(1)]
-    hand_v = np.flatnonzero((dom == hd) & (sw.max(1) > 0.9))
-    fore_v = np.flatnonzero((dom == fa) & (sw.max(1) > 0.9))
+    hand_bones = [body.joint_names.index(n) for n in ("LeftHand", "LeftFingerBase")]
+    hand_v = np.flatnonzero(np.isin(dom, hand_bones) & (sw.max(1) > 0.5))
+    t_fa = (rest_v - np.asarray(rj[fa])) @ ax / Lfa
+    fore_v = np.flatnonzero((dom == fa) & (t_fa > 0.6) & (t_fa < 0.95))
+    # + 5 of the torso points: 10 handles as C1, so the compiled solves are reused
     marks = np.concatenate(
-        [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False)]
+        [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False), torso[:5]]
     )
     gj = np.asarray(gt_j)
     cp = pm.shell_constraints(

@@ -53,6 +53,7 @@ from ._fit import make_lbs_model as make_lbs_model
 from ._model import MLP as MLP
 from ._model import PARTS as PARTS
 from ._model import PanoManModel as PanoManModel
+from ._model import encode_panoman_data as encode_panoman_data
 from ._model import evaluate as evaluate
 from ._model import fit_mlp as fit_mlp
 from ._model import load_panoman as load_panoman
@@ -111,6 +112,7 @@ __all__ = [
     "PanoManModel",
     "PanomanData",
     "decoder_with_reference",
+    "encode_panoman_data",
     "evaluate",
     "expression_set",
     "fit_mlp",

@@ -57,32 +57,33 @@ def fit_joint_regressor(
     vertices: Float[ArrayLike, "N V 3"],
     joints: Float[ArrayLike, "N J 3"],
     *,
-    n_neighbors: int = 32,
-    ridge: float = 1e-4,
+    n_neighbors: int = 256,
 ) -> JointRegressor:
     """Fits a joint regressor on posed meshes with their exact joints (host, least squares).
 
-    Each joint uses the `n_neighbors` vertices nearest to it on the first mesh; weights minimise
-    `Σ_n ‖Σ_m w_m v_nm − J_n‖² + ridge Σ_m w_m²` subject to `Σ_m w_m = 1` (so the regressor
-    commutes with translations). Fit on posed generator output, not at rest (panoman_v2 §6.11).
+    Each joint uses the `n_neighbors` vertices nearest to it on the first mesh (256, as the
+    default body's rest regressor; 32 gave 16 mm mean held-out error, 256 gave 3.9 mm); its weights are
+    the **convex** combination (`w ≥ 0`, `Σ w = 1`: it commutes with rigid motions and stays
+    well conditioned) minimising `Σ_n ‖Σ_m w_m v_nm − J_n‖²`, by non-negative least squares
+    with the sum as a heavily weighted extra row. Fit on posed generator output, not at rest
+    (panoman_v2 §6.11). **Returns:** a [`bodyprior.panoman.JointRegressor`][].
     """
+    from scipy.optimize import nnls
+
     V = np.asarray(vertices, np.float64)
     Jt = np.asarray(joints, np.float64)
     check_array(V, "vertices", ("N", None, 3))
     check_array(Jt, "joints", (V.shape[0], None, 3))
+    n_neighbors = int(min(n_neighbors, V.shape[1]))
     idx = np.zeros((Jt.shape[1], n_neighbors), np.int32)
     W = np.zeros((Jt.shape[1], n_neighbors))
     for j in range(Jt.shape[1]):
         near = np.argsort(np.linalg.norm(V[0] - Jt[0, j], axis=1))[:n_neighbors]
         X = V[:, near].transpose(0, 2, 1).reshape(-1, n_neighbors)  # (N·3, M)
         y = Jt[:, j].reshape(-1)
-        G = X.T @ X + ridge * len(y) * 1e-4 * np.eye(n_neighbors)
-        # KKT for Σ w = 1
-        K = np.block(
-            [[G, np.ones((n_neighbors, 1))], [np.ones((1, n_neighbors)), np.zeros((1, 1))]]
-        )
-        sol = np.linalg.solve(K, np.concatenate([X.T @ y, [1.0]]))
-        idx[j], W[j] = near, sol[:n_neighbors]
+        big = 1e3 * max(np.abs(X).max(), 1.0)
+        w, _ = nnls(np.vstack([X, big * np.ones((1, n_neighbors))]), np.append(y, big))
+        idx[j], W[j] = near, w / max(w.sum(), 1e-300)
     return JointRegressor(jnp.asarray(idx), jnp.asarray(W))
 
 
@@ -228,9 +229,9 @@ class _BlockTargets(eqx.Module):
     alpha: Array
     beta_lengths: Array
     beta_angles: Array
+    correct: Array  # 1.0 with the correction MLP, 0.0 without (a leaf: one compile for both)
     start: int = eqx.field(static=True)
     stop: int = eqx.field(static=True)
-    correct: bool = eqx.field(static=True)
     with_alpha: bool = eqx.field(static=True)
 
     def _full(self, params):
@@ -316,7 +317,7 @@ def fit_panoman(
             kb = model.part_sizes[0]
             bl, ba = model.with_body(b[:kb], b[kb:])
     align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
-    dec = _evaluate_jit_(model, alpha, bl, ba, correct, align)
+    dec = _evaluate_jit_(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
     V = dec.value.vertices
     V_init = V
     stats = {"init_s": time.perf_counter() - t0, "blocks": []}
@@ -324,7 +325,8 @@ def fit_panoman(
         solver = prepare_shell_solver(top)
     for part in blocks:
         s = model.part_slice(part)
-        tg = _BlockTargets(model, alpha, bl, ba, s.start, s.stop, correct, part == "body")
+        flag = jnp.asarray(1.0 if correct else 0.0)
+        tg = _BlockTargets(model, alpha, bl, ba, flag, s.start, s.stop, part == "body")
         params0 = {"bl": bl[s], "ba": ba[s]}
         if part == "body":
             params0["alpha"] = alpha

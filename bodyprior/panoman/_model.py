@@ -49,6 +49,7 @@ __all__ = [
     "MLP",
     "PARTS",
     "PanoManModel",
+    "encode_panoman_data",
     "evaluate",
     "fit_mlp",
     "load_panoman",
@@ -108,7 +109,11 @@ def _init_mlp(key, sizes, relu, bias, x, y) -> MLP:
         bs.append(jnp.zeros(b, jnp.float32) if has_b else None)
     Ws[-1] = Ws[-1] * 0.1  # start near the mean output
     x_mean = jnp.mean(x, 0)
-    x_scale = jnp.maximum(jnp.std(x, 0), 1e-6 * (jnp.max(jnp.std(x, 0)) + 1e-30))
+    # inputs (nearly) constant in training get a unit scale: a tiny scale would turn a new
+    # input's small deviation there into a huge activation (e.g. an IK pose moving a joint the
+    # training poses never move)
+    sd = jnp.std(x, 0)
+    x_scale = jnp.where(sd > 1e-2 * jnp.max(sd), sd, 1.0)
     y_mean = jnp.mean(y, 0)
     y_scale = jnp.maximum(jnp.std(y - y_mean), 1e-12)
     return MLP(tuple(Ws), tuple(bs), x_mean, x_scale, y_mean, y_scale, tuple(relu))
@@ -264,17 +269,23 @@ class PanoManModel(eqx.Module):
         return json.loads(self.info)
 
 
-def model_targets(model: PanoManModel, beta_lengths, beta_angles, *, correct: bool = True) -> RLA:
+def model_targets(
+    model: PanoManModel, beta_lengths, beta_angles, *, correct: bool | ArrayLike = True
+) -> RLA:
     """`X_L(α, β)`, `X_A(α, β)` of eq. 5 (eq. 3 without the correction or with `correct=False`):
-    an [`bodyprior.panoman.RLA`][] `(E,)` relative to `B_S(α)`. Traceable, differentiable."""
+    an [`bodyprior.panoman.RLA`][] `(E,)` relative to `B_S(α)`. Traceable, differentiable.
+
+    `correct` may also be a (traced) number: the correction is scaled by it, so a fit with and
+    without the MLP shares one compiled program."""
     bl = jnp.asarray(beta_lengths)
     ba = jnp.asarray(beta_angles)
     dt = model.components_lengths.dtype
     L = model.mean_lengths + bl.astype(dt) @ model.components_lengths
     A = model.mean_angles + ba.astype(dt) @ model.components_angles
-    if correct and model.correction is not None:
+    if model.correction is not None and not (isinstance(correct, bool) and not correct):
         s = model.part_slice("body")
         r = model.correction(jnp.concatenate([bl[s], ba[s]]).astype(jnp.float32)).astype(dt)
+        r = r * jnp.asarray(correct, dt)
         n = model.correction_edges.shape[0]
         L = L.at[model.correction_edges].add(r[:n])
         A = A.at[model.correction_edges].add(r[n:])
@@ -325,19 +336,25 @@ def evaluate(
     if align_to is not None:
         check_array(align_to, "align_to", (model.topology.n_vertices, 3))
         align_to = jnp.asarray(align_to, jnp.float64)
+    flag = jnp.asarray(1.0 if correct else 0.0)
     return _evaluate_jit(model, jnp.asarray(alpha, jnp.float64), jnp.asarray(beta[0]),
-                         jnp.asarray(beta[1]), bool(correct), align_to)  # fmt: skip
+                         jnp.asarray(beta[1]), flag, align_to)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------------
 # training
 
 
-def _encode_all(data: PanomanData, topology: Topology, chunk: int, progress: bool):
-    """RLA of every mesh relative to its identity's rest mesh; expressions path-unwrapped (their
-    targets are linear in the weight, panoman_v2 §6.3). Fixed-size chunks: one compile each."""
+def encode_panoman_data(
+    data: PanomanData, topology: Topology, *, chunk: int = 64, progress: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """RLA of every mesh of `data` relative to its identity's rest mesh (eq. 1): `(L, A)`, each
+    `(N, E)` float32 (relative lengths, angle changes in radians). Expressions are path-unwrapped
+    ([`bodyprior.panoman.rla_encode_unwrapped`][]: their targets are linear in the weight,
+    panoman_v2 §6.3). Fixed-size chunks: one compile per kind."""
     enc = jax.jit(jax.vmap(lambda v, r: rla_encode(v, r, topology)))
-    enc_u = jax.jit(jax.vmap(lambda v, r: rla_encode_unwrapped(v, r, topology, n_steps=16)))
+    # 8 path steps: the largest facial-target hinge change (5.99 rad) turns < π per step
+    enc_u = jax.jit(jax.vmap(lambda v, r: rla_encode_unwrapped(v, r, topology, n_steps=8)))
     V = np.asarray(data.vertices)
     R = np.asarray(data.rest)
     ident = np.asarray(data.identity)
@@ -442,7 +459,7 @@ def train_panoman(
 
     # RLA relative to each mesh's exact rest
     t0 = time.perf_counter()
-    XL, XA = _encode_all(data, topology, chunk, progress)
+    XL, XA = encode_panoman_data(data, topology, chunk=chunk, progress=progress)
     stats["encode_s"] = time.perf_counter() - t0
 
     # six decompositions
