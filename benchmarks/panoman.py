@@ -67,9 +67,10 @@ def bench(quick: bool, frames: int, max_steps: int) -> dict:
                                 hand_body=hand_body, progress=False)  # fmt: skip
     data_s = time.perf_counter() - t
     t = time.perf_counter()
-    model = pm.train_panoman(data, top, key=key, n_components=k, splocs_iterations=1,
-                             correction_hidden=hidden, correction_rank=rank,
-                             correction_steps=100, beta_steps=100, progress=False).value  # fmt: skip
+    model = pm.train_panoman(
+        data, top, key=key, n_components=k, splocs_iterations=1, correction_hidden=hidden,
+        correction_rank=rank, correction_steps=100, beta_steps=100, progress=False,
+    ).value
     train_s = time.perf_counter() - t
     lbsm = pm.make_lbs_model(model, data, body)
     sel = np.asarray(data.kind) == 0

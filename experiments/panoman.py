@@ -15,7 +15,8 @@
    ground truth: mean and max per frame, averaged; mm.
 5. **Twist** (Figs. 13–14, quantitative): a left-wrist twist of 180° on a held-out identity, ground
    truth by the twist generator; LBS and DQS posed with the true pose, PanoMan fitted to 31 joints
-   + 5 forearm/hand markers (+ 5 torso points); minimum forearm cross-section area ratio and vertex error.
+   + 5 forearm/hand markers (+ 5 torso points); minimum forearm cross-section area ratio and
+   vertex error.
 6. **Table 1**: seconds per stage (IK, β MLP + g, face, body, hand blocks).
 
 Writes `metrics.json` and PNGs to `--out`. `--quick` is the CI size (minutes).
@@ -63,6 +64,9 @@ def parse_args(argv=None):
     for k, v in FULL.items():
         if isinstance(v, int):
             p.add_argument("--" + k.replace("_", "-"), type=int, default=None, help="override")
+        else:  # tuples: comma-separated ints
+            p.add_argument("--" + k.replace("_", "-"), default=None, help="override, e.g. 250,100,50",
+                           type=lambda x: tuple(int(i) for i in x.split(",")))  # fmt: skip
     return p.parse_args(argv)
 
 
