@@ -68,8 +68,16 @@ def bench(quick: bool, frames: int, max_steps: int) -> dict:
     data_s = time.perf_counter() - t
     t = time.perf_counter()
     model = pm.train_panoman(
-        data, top, key=key, n_components=k, splocs_iterations=1, correction_hidden=hidden,
-        correction_rank=rank, correction_steps=100, beta_steps=100, progress=False,
+        data,
+        top,
+        key=key,
+        n_components=k,
+        splocs_iterations=1,
+        correction_hidden=hidden,
+        correction_rank=rank,
+        correction_steps=100,
+        beta_steps=100,
+        progress=False,
     ).value
     train_s = time.perf_counter() - t
     lbsm = pm.make_lbs_model(model, data, body)
@@ -101,8 +109,12 @@ def bench(quick: bool, frames: int, max_steps: int) -> dict:
         J = gj.shape[0]
         r = {}
         t = time.perf_counter()
-        ik = pm.fit_lbs(lbsm, pm.shell_constraints(
-            handles=(handles, gt[handles]), joints=(np.arange(J)[:, None], np.ones((J, 1)), gj)))
+        ik = pm.fit_lbs(
+            lbsm,
+            pm.shell_constraints(
+                handles=(handles, gt[handles]), joints=(np.arange(J)[:, None], np.ones((J, 1)), gj)
+            ),
+        )
         r["ik_s"] = time.perf_counter() - t
         r["ik_steps"] = ik.stats["steps"]
         alpha0, pose0, _ = ik.value
@@ -110,20 +122,29 @@ def bench(quick: bool, frames: int, max_steps: int) -> dict:
         b = model.beta_mlp(pm.pose_features(pose0, names))
         kb = model.part_sizes[0]
         bl, ba = model.with_body(b[:kb], b[kb:])
-        cons = pm.shell_constraints(handles=(handles, gt[handles]),
-                                    joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj))
-        fit = pm.fit_panoman(model, cons, init=(np.asarray(alpha0), np.asarray(bl),
-                                                np.asarray(ba)), solver=solver,
-                             max_steps=max_steps, align_to=np.asarray(ik.stats["vertices"]))
+        cons = pm.shell_constraints(
+            handles=(handles, gt[handles]),
+            joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
+        )
+        fit = pm.fit_panoman(
+            model,
+            cons,
+            init=(np.asarray(alpha0), np.asarray(bl), np.asarray(ba)),
+            solver=solver,
+            max_steps=max_steps,
+            align_to=np.asarray(ik.stats["vertices"]),
+        )
         r["init_s"] = fit.stats["init_s"]
         for blk in fit.stats["blocks"]:
             r[blk["part"] + "_s"] = blk["seconds"]
             r[blk["part"] + "_steps"] = blk["steps"]
         r["fit_total_s"] = time.perf_counter() - t + r["ik_s"]
-        r["err_mm_mean"] = float(np.linalg.norm(np.asarray(fit.value.vertices) - gt, axis=1).mean()
-                                 * 1000)
-        r["lbs_err_mm_mean"] = float(np.linalg.norm(np.asarray(ik.stats["vertices"]) - gt,
-                                                    axis=1).mean() * 1000)
+        r["err_mm_mean"] = float(
+            np.linalg.norm(np.asarray(fit.value.vertices) - gt, axis=1).mean() * 1000
+        )
+        r["lbs_err_mm_mean"] = float(
+            np.linalg.norm(np.asarray(ik.stats["vertices"]) - gt, axis=1).mean() * 1000
+        )
         runs.append(r)
     warm = runs[1:] if len(runs) > 1 else runs
     med = {k: float(np.median([r[k] for r in warm])) for k in warm[0]}

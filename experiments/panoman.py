@@ -65,7 +65,7 @@ def parse_args(argv=None):
         if isinstance(v, int):
             p.add_argument("--" + k.replace("_", "-"), type=int, default=None, help="override")
         else:  # tuples: comma-separated ints
-            p.add_argument("--" + k.replace("_", "-"), default=None, help="override, e.g. 250,100,50",
+            p.add_argument("--" + k.replace("_", "-"), default=None, help="override: 250,100,50",
                            type=lambda x: tuple(int(i) for i in x.split(",")))  # fmt: skip
     return p.parse_args(argv)
 

@@ -63,9 +63,9 @@ def fit_joint_regressor(
 
     Each joint uses the `n_neighbors` vertices nearest to it on the first mesh (256, as the
     default body's rest regressor; 32 gave 16 mm mean held-out error, 256 gave 3.9 mm); its
-    weights are the **convex** combination (`w ≥ 0`, `Σ w = 1`: it commutes with rigid motions and stays
-    well conditioned) minimising `Σ_n ‖Σ_m w_m v_nm − J_n‖²`, by non-negative least squares
-    with the sum as a heavily weighted extra row. Fit on posed generator output, not at rest
+    weights are the **convex** combination (`w ≥ 0`, `Σ w = 1`: it commutes with rigid motions
+    and stays well conditioned) minimising `Σ_n ‖Σ_m w_m v_nm − J_n‖²`, by non-negative least
+    squares with the sum as a heavily weighted extra row. Fit on posed generator output, not at rest
     (panoman_v2 §6.11). **Returns:** a [`bodyprior.panoman.JointRegressor`][].
     """
     from scipy.optimize import nnls
