@@ -116,6 +116,15 @@ KEYS = {
         "gt_error_mm_mean_no_hands",
         "mean_distance_mm",
     ],
+    "panoman": [
+        "fit_total_s",
+        "compile_s",
+        "peer_lbs_fit_s",
+        "ratio_fit_over_lbs",
+        "stages_median.init_s",
+        "stages_median.body_s",
+        "stages_median.err_mm_mean",
+    ],
     "fit_search": [
         "grid.median_s",
         "grid.gt_error_mm",
@@ -127,7 +136,7 @@ KEYS = {
 ANNY_KEYS = ["anny_ms_b1", "anny_ms_per_body_b16", "speedup_b1", "speedup_b16"]
 
 # Quick runs that took over a minute on the 2-core project machine are `slow` (run with -m slow).
-SLOW = {"dspp", "nrd", "sscape_fit", "fit_search"}
+SLOW = {"dspp", "nrd", "sscape_fit", "fit_search", "panoman"}
 
 
 @pytest.mark.parametrize(
