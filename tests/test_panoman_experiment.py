@@ -1,5 +1,5 @@
 """The PanoMan experiment end to end in `--quick` mode (decimated mesh, a few dozen meshes; about
-8 minutes on 2 cores, so it is marked slow:
+6 minutes on 2 cores, so it is marked slow:
 `python -m pytest -m slow tests/test_panoman_experiment.py`).
 The model pieces it uses are tested at tiny sizes in test_panoman_model.py."""
 
