@@ -497,26 +497,26 @@ def evaluate(
 # Limb segments of the twist-distributed skinning: (bone, child whose head ends the segment, child
 # whose twist about the segment axis moves onto the segment or None). The wrist's twist moves to
 # the forearm (CMU puts forearm pronation in the wrist channel, panoman_v2 §6.10).
+def _limb_segments(sides, arm, forearm, hand, thigh, shank, foot):
+    """The four twist segments per side; the bone names are `str.format` patterns of the side."""
+    return tuple(
+        seg
+        for side in sides
+        for seg in (
+            (arm.format(side), forearm.format(side), None),
+            (forearm.format(side), hand.format(side), hand.format(side)),
+            (thigh.format(side), shank.format(side), None),
+            (shank.format(side), foot.format(side), None),
+        )
+    )
+
+
 TWIST_SEGMENTS: dict[str, tuple[tuple[str, str, str | None], ...]] = {
-    "cmu_mb": tuple(
-        seg
-        for side in ("Left", "Right")
-        for seg in (
-            (f"{side}Arm", f"{side}ForeArm", None),
-            (f"{side}ForeArm", f"{side}Hand", f"{side}Hand"),
-            (f"{side}UpLeg", f"{side}Leg", None),
-            (f"{side}Leg", f"{side}Foot", None),
-        )
+    "cmu_mb": _limb_segments(
+        ("Left", "Right"), "{}Arm", "{}ForeArm", "{}Hand", "{}UpLeg", "{}Leg", "{}Foot"
     ),
-    "game_engine": tuple(
-        seg
-        for side in ("l", "r")
-        for seg in (
-            (f"upperarm_{side}", f"lowerarm_{side}", None),
-            (f"lowerarm_{side}", f"hand_{side}", f"hand_{side}"),
-            (f"thigh_{side}", f"calf_{side}", None),
-            (f"calf_{side}", f"foot_{side}", None),
-        )
+    "game_engine": _limb_segments(
+        ("l", "r"), "upperarm_{}", "lowerarm_{}", "hand_{}", "thigh_{}", "calf_{}", "foot_{}"
     ),
 }
 

@@ -682,7 +682,6 @@ def cross_section_areas(
     for off in np.atleast_1d(np.asarray(offsets, np.float64)):
         c = o + off * a
         d = (x - c) @ a
-        area = 0.0
         di = d[f]  # (F, 3)
         cross = (di > 0).any(1) & (di <= 0).any(1)
         fc, dc = f[cross], di[cross]

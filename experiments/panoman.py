@@ -142,13 +142,6 @@ def main(argv=None) -> dict:
     pm.save_panoman(model, os.path.join(a.out, "panoman_model.npz"), float16=True)
     metrics["model_file_mb"] = os.path.getsize(os.path.join(a.out, "panoman_model.npz")) / 1e6
 
-    # alpha of a rest mesh (least squares in the shape space)
-    B = np.asarray(model.shape_basis).reshape(model.shape_basis.shape[0], -1)
-
-    def alpha_of(rest):
-        return np.linalg.lstsq(B.T, (np.asarray(rest) - np.asarray(model.shape_mean)).ravel(),
-                               rcond=None)[0]  # fmt: skip
-
     # ---------------------------------------------------------------- Fig. 7
     t = time.perf_counter()
     fig7 = {}
@@ -286,7 +279,7 @@ def main(argv=None) -> dict:
         handles=(marks, gt_v[marks]),
         joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
     )
-    alpha = alpha_of(rest_v)
+    alpha = model.shape_coefficients(rest_v)
     beta_mlp = model.beta_mlp(pm.pose_features(pose, body.joint_names))
     kb = model.part_sizes[0]
     bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])

@@ -89,9 +89,8 @@ def test_model_neutral_coefficients_and_mlps(trained):
     st = sol.stats
     assert st["correction"]["rmse_after"] < st["correction"]["rmse_before"]
     # the rest body: all parts neutral vs all coefficients zero (the mean is a sum of averages)
-    B = np.asarray(m.shape_basis).reshape(m.shape_basis.shape[0], -1)
     rest = np.asarray(data.rest[0], np.float64)
-    alpha = np.linalg.lstsq(B.T, (rest - np.asarray(m.shape_mean)).ravel(), rcond=None)[0]
+    alpha = m.shape_coefficients(rest)
     v_neutral = np.asarray(pm.evaluate(m, alpha, align_to=rest, correct=False).value.vertices)
     zero = (np.zeros(14), np.zeros(14))
     v_zero = np.asarray(pm.evaluate(m, alpha, zero, align_to=rest, correct=False).value.vertices)

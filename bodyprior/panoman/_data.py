@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 from tqdm.auto import tqdm
 
-from .._body import DefaultBody, evaluate, load_default_body, rest_shape
+from .._body import DefaultBody, evaluate, load_default_body, phenotype_vector, rest_shape
 from .._mocap import PoseSet, rig_pose
 from .._population import sample_phenotypes
 from .._validate import check_array, check_positive_int
@@ -89,33 +89,15 @@ class PanomanData(eqx.Module):
     def subset(self, index) -> PanomanData:
         """The meshes at `index` (host index array or mask); identities are kept."""
         index = np.asarray(index)
-        take = lambda a: jnp.asarray(np.asarray(a)[index])  # noqa: E731
         return eqx.tree_at(
-            lambda d: (
-                d.vertices,
-                d.identity,
-                d.kind,
-                d.body_pose,
-                d.clip,
-                d.expression,
-                d.hand_pose,
-                d.joints,
-            ),
+            lambda d: tuple(getattr(d, f) for f in _PER_MESH),
             self,
-            tuple(
-                take(a)
-                for a in (
-                    self.vertices,
-                    self.identity,
-                    self.kind,
-                    self.body_pose,
-                    self.clip,
-                    self.expression,
-                    self.hand_pose,
-                    self.joints,
-                )
-            ),
+            tuple(jnp.asarray(np.asarray(getattr(self, f))[index]) for f in _PER_MESH),
         )
+
+
+_PER_MESH = ("vertices", "identity", "kind", "body_pose", "clip", "expression", "hand_pose",
+             "joints")  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------------
@@ -270,9 +252,8 @@ def gesture_poses(
     of `rest_joints` (default: the default body's).
     """
     if rest_joints is None:
-        rest_joints = np.asarray(rest_shape(hand_body, _default_phenotypes())[1], np.float64)
+        rest_joints = np.asarray(rest_shape(hand_body, phenotype_vector())[1], np.float64)
     joints = np.asarray(rest_joints, np.float64)
-    tails = joints.copy()
     idx = {n: i for i, n in enumerate(hand_body.joint_names)}
     rng = np.random.default_rng(seed)
     specs = [_gesture_angles(g) for g in (CANONICAL_GESTURES if canonical else ())]
@@ -296,14 +277,7 @@ def gesture_poses(
                     flex = np.deg2rad(spec[f][0 if k == 0 else k + 1])
                     abd = np.deg2rad(spec[f][1]) * sign if k == 0 else 0.0
                     out[g, b] = flex * flex_axis + abd * n
-    del tails
     return out
-
-
-def _default_phenotypes():
-    from .._body import phenotype_vector
-
-    return phenotype_vector()
 
 
 # --------------------------------------------------------------------------------------------------

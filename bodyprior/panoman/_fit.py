@@ -22,7 +22,7 @@ from .._skinning import lbs
 from .._solution import RESULTS, Solution
 from .._validate import check_array
 from ._data import PanomanData
-from ._model import PARTS, PanoManModel, _evaluate, model_targets, pose_features
+from ._model import PARTS, PanoManModel, _evaluate_jit, model_targets, pose_features
 from ._rla import RLA
 from ._solve import (
     ShellConstraints,
@@ -109,28 +109,21 @@ class LbsModel(eqx.Module):
     skin_weights: Float[Array, "V K"]
     parents: tuple[int, ...] = eqx.field(static=True)
 
-    def __call__(self, alpha, pose, translation, *, skinning: str = "lbs"):
+    def __call__(self, alpha, pose, translation):
         """Vertices `(V, 3)` and joints `(J, 3)`; `pose` `(J, 3)` axis-angle, `translation`
         `(3,)` metres."""
         rest = self.shape_mean + jnp.tensordot(alpha, self.shape_basis, axes=1)
         j = self.joint_mean + jnp.tensordot(alpha, self.joint_basis, axes=1)
         R = jax.vmap(axis_angle_to_matrix)(pose)
         A, posed = forward_kinematics(self.parents, R, j, translation)
-        from .._skinning import dqs
-
-        fn = lbs if skinning == "lbs" else dqs
-        return fn(rest, self.skin_indices, self.skin_weights, A), posed
+        return lbs(rest, self.skin_indices, self.skin_weights, A), posed
 
 
 def make_lbs_model(model: PanoManModel, data: PanomanData, body) -> LbsModel:
     """The LBS baseline on `model`'s shape space: rest joints regressed on α from the identities of
     `data`; `body` the `cmu_mb` [`bodyprior.DefaultBody`][] (skin weights, bone tree)."""
-    B = np.asarray(model.shape_basis, np.float64).reshape(model.shape_basis.shape[0], -1)
-    rest = np.asarray(data.rest, np.float64).reshape(data.rest.shape[0], -1)
-    alpha = np.linalg.lstsq(B.T, (rest - np.asarray(model.shape_mean).reshape(-1)).T, rcond=None)[
-        0
-    ].T
-    Jr = np.asarray(data.rest_joints, np.float64).reshape(rest.shape[0], -1)
+    alpha = model.shape_coefficients(data.rest)
+    Jr = np.asarray(data.rest_joints, np.float64).reshape(alpha.shape[0], -1)
     X = np.concatenate([np.ones((alpha.shape[0], 1)), alpha], 1)
     coef = np.linalg.lstsq(X, Jr, rcond=None)[0]
     J = body.n_joints
@@ -317,7 +310,7 @@ def fit_panoman(
             kb = model.part_sizes[0]
             bl, ba = model.with_body(b[:kb], b[kb:])
     align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
-    dec = _evaluate_jit_(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
+    dec = _evaluate_jit(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
     V = dec.value.vertices
     V_init = V
     stats = {"init_s": time.perf_counter() - t0, "blocks": []}
@@ -358,6 +351,3 @@ def fit_panoman(
         RESULTS.successful if ok else RESULTS.nonfinite,
         stats,
     )
-
-
-_evaluate_jit_ = eqx.filter_jit(_evaluate)

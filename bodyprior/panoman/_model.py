@@ -35,6 +35,7 @@ import optax
 from jaxtyping import Array, ArrayLike, Float, Int
 from tqdm.auto import tqdm
 
+from .._body import load_default_body
 from .._io import atomic_write_bytes
 from .._mocap import POSE_JOINTS
 from .._solution import RESULTS, Solution
@@ -264,6 +265,15 @@ class PanoManModel(eqx.Module):
         """`B_S(α)` (eq. 2), metres."""
         return self.shape_mean + jnp.tensordot(jnp.asarray(alpha, self.shape_mean.dtype),
                                                self.shape_basis, axes=1)  # fmt: skip
+
+    def shape_coefficients(self, rest: Float[ArrayLike, "*N V 3"]) -> np.ndarray:
+        """Least-squares α of rest meshes `(V, 3)` or `(N, V, 3)` in the shape space (host):
+        `(P,)` or `(N, P)`."""
+        r = np.asarray(rest, np.float64)
+        B = np.asarray(self.shape_basis, np.float64).reshape(self.shape_basis.shape[0], -1)
+        c = (r.reshape(-1, B.shape[1]) - np.asarray(self.shape_mean, np.float64).reshape(-1)).T
+        alpha = np.linalg.lstsq(B.T, c, rcond=None)[0].T
+        return alpha[0] if r.ndim == 2 else alpha
 
     def info_dict(self) -> dict:
         return json.loads(self.info)
@@ -530,11 +540,9 @@ def train_panoman(
     # β(θ): cmu_mb pose of the 20 pose joints → body coefficients
     beta_mlp = None
     if beta_hidden:
-        from .._body import load_default_body  # joint names of the cmu_mb rig
-
-        names = load_default_body("cmu_mb").joint_names
-        pj = np.asarray([names.index(n) for n in POSE_JOINTS])
-        theta = np.asarray(data.body_pose)[kind == 0][:, pj].reshape(-1, 3 * len(pj))
+        names = load_default_body("cmu_mb").joint_names  # the joint order of `body_pose`
+        pose = jnp.asarray(np.asarray(data.body_pose)[kind == 0])
+        theta = jax.vmap(lambda p: pose_features(p, names))(pose)
         sol = fit_mlp(k_beta, theta, xb, tuple(beta_hidden), n_steps=beta_steps, batch=batch)
         beta_mlp = sol.value
         stats["beta_mlp"] = dict(train_rmse=sol.stats["train_rmse"],
