@@ -63,6 +63,9 @@ from ._kinematics import (
 )
 from ._metrics import (
     generative_metrics as generative_metrics,
+)
+from ._metrics import (
+    hausdorff_distance as hausdorff_distance,
     mean_vertex_distance_metric as mean_vertex_distance_metric,
     pairwise_distances as pairwise_distances,
     pose_geodesic_metric as pose_geodesic_metric,

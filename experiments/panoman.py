@@ -1,4 +1,4 @@
-"""PanoMan on open data (Wang et al. 2021, §4–6): training, Fig. 7, Fig. 18 (C1), twist, Table 1.
+"""PanoMan on open data (Wang et al. 2021, §4–6): training, Fig. 7, Fig. 18 / 20, twist, Table 1.
 
 1. **Data** (`--seed`): H = H_B ∪ H_F ∪ H_H by `bodyprior.panoman.make_panoman_data` on one sex
    (`--sex`, male by default): CMU train clips on train identities, posed by twist-distributed
@@ -9,10 +9,13 @@
    radii, neutral coefficients, correction MLP (low-rank output on body-component edges), β(θ) MLP.
 3. **Fig. 7** (error vs K): body decompositions at several K; RLA projection error and the vertex
    error after g of held-out body meshes (rigidly aligned), mm.
-4. **Fig. 18, C1** (31 joints + 10 torso points) on held-out frames: PanoMan (eq. 5), the baseline
-   without the MLP (eq. 4), and the LBS model on the same shape space fitted to the same
-   constraints (the SMPL stand-in; LBS is not the test data's generator). Per-vertex error vs
-   ground truth: mean and max per frame, averaged; mm.
+4. **Fig. 18 / 20** on held-out frames, constraint sets C1 (31 joints + 10 torso points), C2
+   (C1 + 70 face points + 42 hand keypoints), C3 (1,000 random vertices; `--csets`): PanoMan
+   (eq. 5), the baseline without the MLP (eq. 4), and the LBS and DQS models on the same shape
+   space fitted to the same constraints (the SMPL stand-ins; neither is the test data's
+   generator). PanoMan starts from the RLA projection of the LBS fit's mesh; the paper's start,
+   β(θ_IK) → g, is measured as `panoman_mlp_init`. Per-vertex error vs ground truth (mean and max
+   per frame, averaged; mm) and Hausdorff distance / bbox diagonal.
 5. **Twist** (Figs. 13–14, quantitative): a left-wrist twist of 180° on a held-out identity, ground
    truth by the twist generator; LBS and DQS posed with the true pose, PanoMan fitted to 31 joints
    + 5 forearm/hand markers (+ 5 torso points); minimum forearm cross-section area ratio and
@@ -42,13 +45,14 @@ import bodyprior.panoman as pm  # noqa: E402
 QUICK = dict(
     n_body_ids=8, poses_per_id=6, n_face_ids=3, n_hand_ids=5, gestures_per_id=8,
     k=(24, 16, 12), fig7_k=(8, 24), splocs_iter=2, mlp_steps=300, mlp_hidden=256, rank=32,
-    n_test_ids=1, test_poses=2, fit_steps=2, n_shape_rest=200,
+    n_test_ids=1, test_poses=2, fit_steps=2, n_shape_rest=200, csets=("c1", "c2", "c3"),
+    fig16_expr=5, fig16_gesture="point",
 )  # fmt: skip
 FULL = dict(
     n_body_ids=300, poses_per_id=20, n_face_ids=100, n_hand_ids=300, gestures_per_id=20,
     k=(250, 100, 50), fig7_k=(25, 50, 100, 150, 200, 250, 300, 400), splocs_iter=10,
     mlp_steps=6000, mlp_hidden=1500, rank=256, n_test_ids=10, test_poses=5, fit_steps=8,
-    n_shape_rest=2000,
+    n_shape_rest=2000, csets=("c1", "c2", "c3"), fig16_expr=5, fig16_gesture="point",
 )  # fmt: skip
 
 
@@ -62,7 +66,12 @@ def parse_args(argv=None):
     p.add_argument("--mocap", default=None, help="CMU BVH folder (default ../shared/data/mocap)")
     p.add_argument("--no-progress", action="store_true")
     for k, v in FULL.items():
-        if isinstance(v, int):
+        if k == "fig16_gesture":
+            p.add_argument("--fig16-gesture", default=None, help="a canonical gesture")
+        elif k == "csets":
+            p.add_argument("--csets", default=None, type=lambda x: tuple(x.split(",")),
+                           help="constraint sets, e.g. c1,c2")  # fmt: skip
+        elif isinstance(v, int):
             p.add_argument("--" + k.replace("_", "-"), type=int, default=None, help="override")
         else:  # tuples: comma-separated ints
             p.add_argument("--" + k.replace("_", "-"), default=None, help="override: 250,100,50",
@@ -73,6 +82,124 @@ def parse_args(argv=None):
 def _err_mm(v, gt):
     d = np.linalg.norm(np.asarray(v) - np.asarray(gt), axis=1) * 1000.0
     return float(d.mean()), float(d.max())
+
+
+def _record(rec, cs, name, v, gt, faces):
+    """Per-vertex mean and max error (mm) and Hausdorff / bbox diagonal of one reconstruction."""
+    m, x = _err_mm(v, gt)
+    h = bp.hausdorff_distance(np.asarray(v), gt, faces_a=faces, faces_b=faces, relative=True)
+    rec.setdefault(cs, {}).setdefault(name, []).append((m, x, h))
+
+
+def constraint_sets(body, hand_body, vm, rest, rng) -> dict:
+    """Vertex indices (into the `vm` subset) of the paper's constraint sets (§6, Fig. 18 / 20).
+
+    - `torso`, C1's 10 torso points: vertices skinned ≥ 0.95 to the spine bones.
+    - `c1`: the torso points (plus the 31 `cmu_mb` joints, added by the caller).
+    - `c2`: C1 + 70 face points (vertices the facial-action targets move, farthest-point sampled)
+      + 42 hand keypoints: per hand the vertex nearest each of `game_engine`'s 16 hand joints and
+      the 5 fingertips (the vertex of each distal phalanx farthest from its joint). The paper's
+      hand *joints* are regressed inside the fingers; keypoints on the surface stand in for them.
+    - `c3`: 1,000 random vertices (no joints).
+    """
+    si = np.asarray(body.rig.skin_indices)[vm]
+    sw = np.asarray(body.rig.skin_weights)[vm]
+    spine = [body.joint_names.index(n) for n in ("Hips", "LowerBack", "Spine", "Spine1")]
+    dom = si[np.arange(si.shape[0]), sw.argmax(1)]
+    torso = rng.choice(np.flatnonzero(np.isin(dom, spine) & (sw.max(1) > 0.95)), 10, replace=False)
+    fb = np.asarray(body.face_basis).reshape(len(body.face_labels), -1, 3)
+    moved = np.flatnonzero(np.abs(fb).max(axis=(0, 2))[vm] > 1e-3)
+    face = [moved[0]]
+    dmin = np.linalg.norm(rest[moved] - rest[moved[0]], axis=1)
+    for _ in range(69):  # farthest-point sampling over the face
+        face.append(moved[int(dmin.argmax())])
+        dmin = np.minimum(dmin, np.linalg.norm(rest[moved] - rest[face[-1]], axis=1))
+    _, hj = bp.rest_shape(hand_body, bp.phenotype_vector())
+    hj = np.asarray(hj)
+    names = hand_body.joint_names
+    hsi = np.asarray(hand_body.rig.skin_indices)[vm]
+    hsw = np.asarray(hand_body.rig.skin_weights)[vm]
+    hdom = hsi[np.arange(hsi.shape[0]), hsw.argmax(1)]
+    hand = []
+    for side in "lr":
+        for n in ["hand"] + [f"{f}_{k:02d}" for f in ("index", "middle", "pinky", "ring", "thumb")
+                             for k in (1, 2, 3)]:  # fmt: skip
+            j = names.index(f"{n}_{side}")
+            hand.append(int(np.linalg.norm(rest - hj[j], axis=1).argmin()))
+        for f in ("index", "middle", "pinky", "ring", "thumb"):
+            j = names.index(f"{f}_03_{side}")
+            mine = np.flatnonzero(hdom == j)
+            hand.append(int(mine[np.linalg.norm(rest[mine] - hj[j], axis=1).argmax()]))
+    c3 = rng.choice(rest.shape[0], 1000, replace=False)
+    return dict(torso=torso, c1=torso, c2=np.concatenate([torso, face, hand]), c3=c3)
+
+
+def composition(model, body, hand_body, vm, test, i_body, expr, gesture):
+    """Fig. 16 made quantitative: a held-out body pose, one of the 39 expressions and a canonical
+    gesture, each projected from its own mesh (`motion_coefficients`), composed into one β
+    (body, face, hand slots) and decoded once.
+
+    Ground truth for body pose + expression is the generator with both (twist skinning of the
+    expression's rest); the gesture lives on another rig (`game_engine`), so the hands are compared
+    with the gesture mesh after a rigid alignment of each hand. Errors (mm, mean): `body_face`
+    over the non-hand vertices vs the body + expression truth; `face` over the face vertices and
+    `hand` over both hands, each after its own rigid alignment, vs the expression and gesture
+    sources. `alone` decodes each source's own β alone (the representation floor)."""
+    ident = int(test.identity[i_body])
+    phen = np.asarray(test.phenotypes[ident])
+    lc = np.asarray(test.local_changes[ident])
+    theta = np.asarray(test.body_pose[i_body])
+    e = np.asarray(pm.expression_set(body.face_labels))[expr]
+    g = pm.gesture_poses(hand_body, 0, seed=0)[pm.CANONICAL_GESTURES.index(gesture)]
+    face_v = bp.evaluate(body, phen, local_changes=lc, facial_actions=e)[0]
+    src = {
+        "body pose": np.asarray(test.vertices[i_body], np.float64),
+        "expression": np.asarray(face_v, np.float64)[vm],
+        "gesture": np.asarray(bp.evaluate(hand_body, phen, g, local_changes=lc)[0], np.float64)[vm],
+    }
+    gt = np.asarray(bp.evaluate(body, phen, theta, local_changes=lc, facial_actions=e,
+                                skinning="twist")[0], np.float64)[vm]  # fmt: skip
+    rest = np.asarray(test.rest[ident], np.float64)
+    alpha = model.shape_coefficients(rest)
+    fb = np.asarray(body.face_basis).reshape(len(body.face_labels), -1, 3)[:, vm]
+    face = np.flatnonzero(np.abs(fb).max(axis=(0, 2)) > 1e-3)
+    hsi = np.asarray(hand_body.rig.skin_indices)[vm]
+    hsw = np.asarray(hand_body.rig.skin_weights)[vm]
+    hdom = hsi[np.arange(hsi.shape[0]), hsw.argmax(1)]
+    hands = []
+    for side in "lr":
+        bones = [i for i, n in enumerate(hand_body.joint_names)
+                 if n.endswith("_" + side) and (n.startswith("hand") or n[-5:-2] in
+                                                ("_01", "_02", "_03"))]  # fmt: skip
+        hands.append(np.flatnonzero(np.isin(hdom, bones)))
+    not_hand = np.setdiff1d(np.arange(rest.shape[0]), np.concatenate(hands))
+
+    def rigid_err(v, ref, idx):
+        sim = bp.umeyama(v[idx], ref[idx], with_scale=False)
+        return float(np.linalg.norm(np.asarray(sim.apply(v[idx])) - ref[idx], axis=1).mean() * 1e3)
+
+    betas = {k: model.motion_coefficients(v, alpha) for k, v in src.items()}
+    parts = {"body pose": "body", "expression": "face", "gesture": "hand"}
+    bl, ba = (np.asarray(x, np.float64).copy() for x in model.neutral())
+    for k, part in parts.items():
+        sl = model.part_slice(part)
+        bl[sl], ba[sl] = betas[k][0][sl], betas[k][1][sl]
+    v = np.asarray(pm.evaluate(model, alpha, (bl, ba), align_to=gt).value.vertices)
+    out = {"composed": dict(
+        body_face_err_mm=float(np.linalg.norm(v[not_hand] - gt[not_hand], axis=1).mean() * 1e3),
+        face_err_mm=rigid_err(v, gt, face),
+        hand_err_mm=float(np.mean([rigid_err(v, src["gesture"], h) for h in hands])),
+    ), "alone": {}, "expression": int(expr), "gesture": gesture}  # fmt: skip
+    shown = {"composed": v}
+    for k, part in parts.items():
+        sl = model.part_slice(part)
+        b = model.with_part(part, betas[k][0][sl], betas[k][1][sl])
+        va = np.asarray(pm.evaluate(model, alpha, b, align_to=src[k]).value.vertices)
+        idx = {"body": not_hand, "face": face, "hand": np.concatenate(hands)}[part]
+        out["alone"][k] = rigid_err(va, src[k], idx)
+        shown[k] = src[k]
+    shown["truth (body + expression)"] = gt
+    return out, shown
 
 
 def main(argv=None) -> dict:
@@ -185,57 +312,73 @@ def main(argv=None) -> dict:
     T["fig7_s"] = time.perf_counter() - t
     t = time.perf_counter()
 
-    # ---------------------------------------------------------------- Fig. 18, C1
+    # ---------------------------------------------------------------- Fig. 18 / 20, C1–C3
     lbsm = pm.make_lbs_model(model, data, body)
+    dqsm = pm.make_lbs_model(model, data, body, skinning="dqs")
     reg = pm.fit_joint_regressor(np.asarray(data.vertices)[sel], np.asarray(data.joints)[sel])
     rng = np.random.default_rng(a.seed)
-    # 10 torso points: vertices skinned mostly to the spine bones, picked once on the template
-    spine = [body.joint_names.index(n) for n in ("Hips", "LowerBack", "Spine", "Spine1")]
-    si = np.asarray(body.rig.skin_indices)[vm]
-    sw = np.asarray(body.rig.skin_weights)[vm]
-    dom0 = si[np.arange(si.shape[0]), sw.argmax(1)]
-    torso = np.flatnonzero(np.isin(dom0, spine) & (sw.max(1) > 0.95))
-    torso = rng.choice(torso, 10, replace=False)
+    sets = constraint_sets(body, hand_body, vm, np.asarray(test.rest[0]), rng)
+    torso = sets["torso"]
+    n_handles = max(sets[c].size for c in cfg["csets"])
     solver = pm.prepare_shell_solver(top)
-    rec = {"panoman": [], "baseline": [], "lbs": []}
+    rec: dict = {}
     stages = []
     for i in tb:
         gt = np.asarray(test.vertices[i], np.float64)
         gj = np.asarray(test.joints[i], np.float64)
         J = gj.shape[0]
-        # LBS / IK on joints + torso points
-        cl = pm.shell_constraints(
-            handles=(torso, gt[torso]),
-            joints=(np.arange(J)[:, None], np.ones((J, 1)), gj),
-        )
-        tk = time.perf_counter()
-        ik = pm.fit_lbs(lbsm, cl)
-        t_ik = time.perf_counter() - tk
-        alpha0, pose0, _ = ik.value
-        rec["lbs"].append(_err_mm(ik.stats["vertices"], gt))
-        # PanoMan: joints through the posed regressor
-        cp = pm.shell_constraints(
-            handles=(torso, gt[torso]),
-            joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
-        )
-        for name, corr in (("panoman", True), ("baseline", False)):
+        for cs in cfg["csets"]:
+            # every set padded to the same shapes (zero-weight rows): one compile for all sets
+            hidx = sets[cs]
+            hw = np.zeros(n_handles)
+            hw[: hidx.size] = 1.0
+            hidx = np.concatenate([hidx, np.zeros(n_handles - hidx.size, hidx.dtype)])
+            hpos = gt[hidx] * hw[:, None]
+            jw = np.full(J, 0.0 if cs == "c3" else 1.0)  # C3: vertices only
+            gjw = gj * jw[:, None]
+            # LBS / DQS / IK: exact FK joints + the set's surface points
+            cl = pm.shell_constraints(
+                handles=(hidx, hpos, hw), joints=(np.arange(J)[:, None], np.ones((J, 1)), gjw, jw)
+            )
+            tk = time.perf_counter()
+            ik = pm.fit_lbs(lbsm, cl)
+            t_ik = time.perf_counter() - tk
+            alpha0, pose0, _ = ik.value
+            _record(rec, cs, "lbs", ik.stats["vertices"], gt, faces)
+            _record(rec, cs, "dqs", pm.fit_lbs(dqsm, cl).stats["vertices"], gt, faces)
+            # PanoMan: joints through the posed regressor
+            cp = pm.shell_constraints(
+                handles=(hidx, hpos, hw),
+                joints=(np.asarray(reg.indices), np.asarray(reg.weights), gjw, jw),
+            )
+            v_ik = np.asarray(ik.stats["vertices"])
+            # the paper's initialisation, β(θ_IK) → g: measured, not used (see the docs)
             beta_mlp = model.beta_mlp(pm.pose_features(pose0, body.joint_names))
             kb = model.part_sizes[0]
             bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
-            fit = pm.fit_panoman(
-                model, cp, init=(np.asarray(alpha0), np.asarray(bl), np.asarray(ba)),
-                correct=corr, solver=solver, max_steps=cfg["fit_steps"],
-                align_to=np.asarray(ik.stats["vertices"]),
-            )  # fmt: skip
-            rec[name].append(_err_mm(fit.value.vertices, gt))
-            if corr:
-                stages.append(dict(ik_s=t_ik, init_s=fit.stats["init_s"],
-                                   **{b["part"] + "_s": b["seconds"] for b in fit.stats["blocks"]},
-                                   **{b["part"] + "_steps": b["steps"] for b in
-                                      fit.stats["blocks"]}))  # fmt: skip
-    for name, v in rec.items():
-        metrics[f"recon_c1_mean_mm_{name}"] = float(np.mean([e[0] for e in v]))
-        metrics[f"recon_c1_max_mm_{name}"] = float(np.mean([e[1] for e in v]))
+            v_mlp = pm.evaluate(model, np.asarray(alpha0), (bl, ba), align_to=v_ik).value.vertices
+            _record(rec, cs, "panoman_mlp_init", v_mlp, gt, faces)
+            for name, corr in (("panoman", True), ("baseline", False)):
+                fit = pm.fit_panoman(
+                    model, cp, init=(np.asarray(alpha0), np.asarray(bl), np.asarray(ba)),
+                    init_mesh=v_ik, correct=corr, solver=solver, max_steps=cfg["fit_steps"],
+                )  # fmt: skip
+                _record(rec, cs, name, fit.value.vertices, gt, faces)
+                _record(rec, cs, name + "_init", fit.value.init_vertices, gt, faces)
+                if corr:
+                    row = dict(ik_s=t_ik, init_s=fit.stats["init_s"])
+                    for b in fit.stats["blocks"]:
+                        row[b["part"] + "_s"] = b["seconds"]
+                        row[b["part"] + "_steps"] = b["steps"]
+                        row[b["part"] + "_cg_steps"] = b["cg_steps"]
+                    stages.append(row)
+    for cs, rows in rec.items():
+        for name, v in rows.items():
+            v = np.asarray(v)
+            metrics[f"recon_{cs}_mean_mm_{name}"] = float(v[:, 0].mean())
+            metrics[f"recon_{cs}_max_mm_{name}"] = float(v[:, 1].mean())
+            metrics[f"recon_{cs}_hausdorff_bbox_{name}"] = float(v[:, 2].mean())
+    metrics["recon_frames"] = int(len(tb))
     metrics["table1"] = {k: float(np.mean([s[k] for s in stages])) for k in stages[0]}
     metrics["fit_total_s_mean"] = float(
         np.mean([sum(v for k, v in s.items() if k.endswith("_s")) for s in stages])
@@ -265,18 +408,23 @@ def main(argv=None) -> dict:
         tw[sk] = v
     tw["ground_truth"] = gt_v
     # PanoMan fitted to joints + 5 markers (3 on the back of the hand, 2 on the distal forearm)
+    si = np.asarray(body.rig.skin_indices)[vm]
+    sw = np.asarray(body.rig.skin_weights)[vm]
     dom = si[np.arange(si.shape[0]), sw.argmax(1)]
     hand_bones = [body.joint_names.index(n) for n in ("LeftHand", "LeftFingerBase")]
     hand_v = np.flatnonzero(np.isin(dom, hand_bones) & (sw.max(1) > 0.5))
     t_fa = (rest_v - np.asarray(rj[fa])) @ ax / Lfa
     fore_v = np.flatnonzero((dom == fa) & (t_fa > 0.6) & (t_fa < 0.95))
-    # + 5 of the torso points: 10 handles as C1, so the compiled solves are reused
+    # + 5 of the torso points, padded as the C sets (the compiled solves are reused)
     marks = np.concatenate(
         [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False), torso[:5]]
     )
+    hw = np.zeros(n_handles)
+    hw[: marks.size] = 1.0
+    marks = np.concatenate([marks, np.zeros(n_handles - marks.size, marks.dtype)])
     gj = np.asarray(gt_j)
     cp = pm.shell_constraints(
-        handles=(marks, gt_v[marks]),
+        handles=(marks, gt_v[marks] * hw[:, None], hw),
         joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
     )
     alpha = model.shape_coefficients(rest_v)
@@ -299,6 +447,15 @@ def main(argv=None) -> dict:
     for name in ("panoman", "baseline", "lbs", "dqs", "ground_truth"):
         metrics[f"twist180_min_area_ratio_{name}"] = twist[name]["min_area_ratio"]
 
+    # ---------------------------------------------------------------- Fig. 16, composition
+    t = time.perf_counter()
+    fig16, comp_v = composition(model, body, hand_body, vm, test, int(tb[0]), cfg["fig16_expr"],
+                                cfg["fig16_gesture"])  # fmt: skip
+    metrics["fig16"] = fig16
+    for k in ("body_face_err_mm", "face_err_mm", "hand_err_mm"):
+        metrics[f"fig16_{k}"] = fig16["composed"][k]
+    T["fig16_s"] = time.perf_counter() - t
+
     # ---------------------------------------------------------------- figure
     import matplotlib
 
@@ -310,12 +467,21 @@ def main(argv=None) -> dict:
     ax1[0].plot(ks, [fig7[k]["vertex_err_mean_mm"] for k in ks], "o-")
     ax1[0].set_xlabel("body components K")
     ax1[0].set_ylabel("held-out vertex error after g (mm)")
-    names = ["lbs", "baseline", "panoman"]
-    ax1[1].bar(names, [metrics[f"recon_c1_mean_mm_{n}"] for n in names])
-    ax1[1].set_ylabel("C1 reconstruction, mean error (mm)")
+    names = ["lbs", "dqs", "baseline", "panoman"]
+    csets = [c for c in cfg["csets"] if f"recon_{c}_mean_mm_lbs" in metrics]
+    w = 0.8 / len(names)
+    for n_i, n in enumerate(names):
+        vals = [metrics[f"recon_{c}_mean_mm_{n}"] for c in csets]
+        ax1[1].bar(np.arange(len(csets)) + n_i * w, vals, w, label=n)
+    ax1[1].set_xticks(np.arange(len(csets)) + 0.4 - w / 2, [c.upper() for c in csets])
+    ax1[1].set_ylabel("held-out reconstruction, mean error (mm)")
+    ax1[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(os.path.join(a.out, "panoman_fig7_fig18.png"), dpi=100)
     plt.close(fig)
+    img = [bp.render_mesh(v, faces, size=(300, 400)) for v in comp_v.values()]
+    bp.save_png(os.path.join(a.out, "panoman_fig16.png"),
+                bp.contact_sheet(img, labels=list(comp_v)))  # fmt: skip
 
     T["total_s"] = sum(T.values())
     metrics["timing_s"] = T

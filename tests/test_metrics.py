@@ -212,3 +212,29 @@ def test_joint_limit_errors():
         bp.dspp.joint_limit_violation(e, lim[:10], order=ORDER)
     with pytest.raises(ValueError, match="lower <= upper"):
         bp.dspp.joint_limit_violation(e, np.flip(np.asarray(lim), -1), order=ORDER)
+
+
+@pytest.mark.bad_input
+def test_hausdorff_distance_points_and_faces():
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((50, 3))
+    b = a.copy()
+    assert bp.hausdorff_distance(a, b) == 0.0
+    b[7] += np.array([0.0, 0.0, 2.0])  # one point moved far: the Hausdorff distance sees it
+    h = bp.hausdorff_distance(a, b)
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1)  # brute force
+    assert np.isclose(h, max(d.min(1).max(), d.min(0).max()))
+    assert h >= np.linalg.norm(a - b[7], axis=1).min() > 0.5
+    # relative: divided by b's bounding-box diagonal
+    diag = np.linalg.norm(b.max(0) - b.min(0))
+    assert np.isclose(bp.hausdorff_distance(a, b, relative=True), h / diag)
+    # face centroids join the samples: a triangle vs its own vertices differs by its centroid
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    f = np.array([[0, 1, 2]])
+    far = np.concatenate([tri, [[1.0 / 3, 1.0 / 3, 0.0]]])  # the vertices and the centroid
+    assert np.isclose(bp.hausdorff_distance(far, tri, faces_b=f), 0.0)
+    assert bp.hausdorff_distance(far, tri) > 0.4
+    with pytest.raises(ValueError, match="faces_b"):
+        bp.hausdorff_distance(a, tri, faces_b=np.array([[0, 1, 5]]))
+    with pytest.raises(ValueError, match="a"):
+        bp.hausdorff_distance(a[:, :2], b)

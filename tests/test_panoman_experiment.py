@@ -14,8 +14,9 @@ MOCAP = REPO.parent / "shared" / "data" / "mocap"
 
 KEYS = (
     "fig7_body_vertex_err_mm_at_k", "recon_c1_mean_mm_panoman", "recon_c1_mean_mm_baseline",
-    "recon_c1_mean_mm_lbs", "twist180_min_area_ratio_panoman", "twist180_min_area_ratio_lbs",
-    "fit_total_s_mean",
+    "recon_c1_mean_mm_lbs", "recon_c2_mean_mm_panoman", "recon_c2_mean_mm_lbs",
+    "recon_c3_mean_mm_panoman", "recon_c1_mean_mm_dqs", "recon_c1_hausdorff_bbox_panoman",
+    "twist180_min_area_ratio_panoman", "twist180_min_area_ratio_lbs", "fit_total_s_mean",
 )  # fmt: skip
 
 
@@ -31,7 +32,11 @@ def test_panoman_experiment_quick(tmp_path):
     # the ground-truth generator keeps the forearm; LBS collapses it
     assert m["twist180_min_area_ratio_ground_truth"] > 0.85
     assert m["twist180_min_area_ratio_lbs"] < 0.3
-    for name in ("panoman", "baseline", "lbs"):
-        assert 0.0 < m[f"recon_c1_mean_mm_{name}"] < 300.0
+    for cs in ("c1", "c2", "c3"):
+        for name in ("panoman", "baseline", "lbs", "dqs"):
+            assert 0.0 < m[f"recon_{cs}_mean_mm_{name}"] < 300.0
+            assert 0.0 < m[f"recon_{cs}_hausdorff_bbox_{name}"] < 0.5
+    # more constraints, less error (C2 ⊃ C1 for every method)
+    assert m["recon_c2_mean_mm_lbs"] <= m["recon_c1_mean_mm_lbs"] + 1.0
     assert (out / "panoman_fig7_fig18.png").stat().st_size > 1000
     assert (out / "panoman_model.npz").stat().st_size > 1000

@@ -22,6 +22,7 @@ Angles follow the paper: `â = ψ − ψ_r` with `ψ` the interior dihedral angl
 Kernels work on one mesh; batch with `jax.vmap`. Units: metres and radians.
 """
 
+from ._data import CANONICAL_GESTURES as CANONICAL_GESTURES
 from ._data import KINDS as KINDS
 from ._data import PanomanData as PanomanData
 from ._data import expression_set as expression_set

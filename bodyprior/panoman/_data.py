@@ -33,7 +33,14 @@ from .._mocap import PoseSet, rig_pose
 from .._population import sample_phenotypes
 from .._validate import check_array, check_positive_int
 
-__all__ = ["KINDS", "PanomanData", "expression_set", "gesture_poses", "make_panoman_data"]
+__all__ = [
+    "CANONICAL_GESTURES",
+    "KINDS",
+    "PanomanData",
+    "expression_set",
+    "gesture_poses",
+    "make_panoman_data",
+]
 
 KINDS = ("body", "face", "hand")  # kind codes 0, 1, 2
 FINGERS = ("thumb", "index", "middle", "ring", "pinky")

@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._kinematics import forward_kinematics
 from .._rotations import axis_angle_to_matrix
-from .._skinning import lbs
+from .._skinning import dqs, lbs
 from .._solution import RESULTS, Solution
 from .._validate import check_array
 from ._data import PanomanData
@@ -98,7 +98,8 @@ class LbsModel(eqx.Module):
     - `joint_mean` `(J, 3)`, `joint_basis` `(P, J, 3)`: rest joints linear in α (least squares on
       the training identities' exact rest joints).
     - `skin_indices`, `skin_weights` `(V, K)`: the `cmu_mb` weights on this vertex subset.
-    - `parents`: static bone tree.
+    - `parents`: static bone tree; `skinning`: `"lbs"` (the SMPL stand-in) or `"dqs"`
+      (dual-quaternion skinning, the paper's other skinning comparison).
     """
 
     shape_mean: Float[Array, "V 3"]
@@ -108,6 +109,7 @@ class LbsModel(eqx.Module):
     skin_indices: Int[Array, "V K"]
     skin_weights: Float[Array, "V K"]
     parents: tuple[int, ...] = eqx.field(static=True)
+    skinning: str = eqx.field(static=True, default="lbs")
 
     def __call__(self, alpha, pose, translation):
         """Vertices `(V, 3)` and joints `(J, 3)`; `pose` `(J, 3)` axis-angle, `translation`
@@ -116,12 +118,18 @@ class LbsModel(eqx.Module):
         j = self.joint_mean + jnp.tensordot(alpha, self.joint_basis, axes=1)
         R = jax.vmap(axis_angle_to_matrix)(pose)
         A, posed = forward_kinematics(self.parents, R, j, translation)
-        return lbs(rest, self.skin_indices, self.skin_weights, A), posed
+        skin = dqs if self.skinning == "dqs" else lbs
+        return skin(rest, self.skin_indices, self.skin_weights, A), posed
 
 
-def make_lbs_model(model: PanoManModel, data: PanomanData, body) -> LbsModel:
+def make_lbs_model(
+    model: PanoManModel, data: PanomanData, body, *, skinning: str = "lbs"
+) -> LbsModel:
     """The LBS baseline on `model`'s shape space: rest joints regressed on α from the identities of
-    `data`; `body` the `cmu_mb` [`bodyprior.DefaultBody`][] (skin weights, bone tree)."""
+    `data`; `body` the `cmu_mb` [`bodyprior.DefaultBody`][] (skin weights, bone tree);
+    `skinning` `"lbs"` or `"dqs"`."""
+    if skinning not in ("lbs", "dqs"):
+        raise ValueError(f"`skinning` must be 'lbs' or 'dqs', got {skinning!r}.")
     alpha = model.shape_coefficients(data.rest)
     Jr = np.asarray(data.rest_joints, np.float64).reshape(alpha.shape[0], -1)
     X = np.concatenate([np.ones((alpha.shape[0], 1)), alpha], 1)
@@ -136,6 +144,7 @@ def make_lbs_model(model: PanoManModel, data: PanomanData, body) -> LbsModel:
         skin_indices=jnp.asarray(np.asarray(body.rig.skin_indices)[vm]),
         skin_weights=jnp.asarray(np.asarray(body.rig.skin_weights, np.float64)[vm]),
         parents=body.parents,
+        skinning=skinning,
     )
 
 
@@ -175,13 +184,21 @@ def fit_lbs(
     """
     P = lbs_model.shape_basis.shape[0]
     J = lbs_model.joint_mean.shape[0]
-    y0 = (jnp.zeros(P), jnp.zeros((J, 3)), jnp.zeros(3))
-    if constraints.joint_position.shape[0]:
-        y0 = (
-            y0[0],
-            y0[1],
-            jnp.mean(constraints.joint_position, 0) - jnp.mean(lbs_model.joint_mean, 0),
-        )
+    # translation start: the weighted mean offset of the joint targets from the mean skeleton's
+    # joints, else of the handles from the mean shape's vertices (zero-weight rows, e.g. padding,
+    # do not count)
+    c = constraints
+    groups = [(c.handle_weight, c.handle_position, lbs_model.shape_mean[c.handle_index])]
+    if c.joint_indices.shape[0]:
+        groups.insert(0, (c.joint_weight, c.joint_position,
+                          lbs_model.joint_mean[c.joint_indices[:, 0]]))  # fmt: skip
+    trans = np.zeros(3)
+    for w, pos, ref in groups:
+        w = np.asarray(w)
+        if w.size and w.sum() > 0:
+            trans = (w[:, None] * (np.asarray(pos) - np.asarray(ref))).sum(0) / w.sum()
+            break
+    y0 = (jnp.zeros(P), jnp.zeros((J, 3)), jnp.asarray(trans))
     prior = (jnp.sqrt(alpha_prior), jnp.sqrt(pose_prior))
     t0 = time.perf_counter()
     sol = _fit_lbs(lbs_model, constraints, prior, y0, int(max_steps))
@@ -254,6 +271,7 @@ def fit_panoman(
     constraints: ShellConstraints,
     *,
     init: tuple | None = None,
+    init_mesh: Float[ArrayLike, "V 3"] | None = None,
     theta: Float[ArrayLike, "J 3"] | None = None,
     joint_names: tuple[str, ...] | None = None,
     blocks: tuple[str, ...] = ("face", "body", "hand"),
@@ -263,6 +281,8 @@ def fit_panoman(
     param_weight: float = 1e-4,
     solver: ShellSolver | None = None,
     align_to: Float[ArrayLike, "V 3"] | None = None,
+    cg_rtol: float = 1e-3,
+    cg_max_steps: int = 300,
 ) -> Solution:
     """Reconstructs a full body from sparse constraints (paper §5; module docstring).
 
@@ -272,6 +292,11 @@ def fit_panoman(
     - `constraints`: [`bodyprior.panoman.shell_constraints`][] on the model's vertices (handles,
       joints through a regressor, point-to-plane surface points, parameter editing).
     - `init`: `(α, β_L, β_A)` to start from; default α = 0 and β from `theta`.
+    - `init_mesh`: `(V, 3)` a posed mesh (e.g. the IK mesh of [`bodyprior.panoman.fit_lbs`][])
+      whose RLA projection ([`bodyprior.panoman.PanoManModel.motion_coefficients`][], at `init`'s
+      α or 0) replaces the β of `init` / `theta`; it is also the default `align_to`. The paper's
+      initialisation is β(θ) of the IK pose; from an IK mesh the projection is far closer (the IK
+      pose's unobserved twists put θ outside the β MLP's training range).
     - `theta`: a `cmu_mb` axis-angle pose `(J, 3)` (e.g. from IK, [`bodyprior.panoman.fit_lbs`][],
       or motion data) giving the body β by the β MLP (§5.3); `joint_names` the rig's names.
     - `blocks`: the block order (paper: face, body, hand); each block moves all vertices and its
@@ -281,9 +306,14 @@ def fit_panoman(
     - `solver`: a prepared [`bodyprior.panoman.ShellSolver`][] (prepared here if omitted).
     - `align_to`: `(V, 3)` mesh the decoded initialisation is placed on rigidly (e.g. the IK
       mesh); default the decoder's anchor frame.
+    - `cg_rtol`, `cg_max_steps`: the inner PCG of each LM iteration
+      ([`bodyprior.panoman.shell_solve`][]). Inexact steps: on held-out C1 frames (decimated
+      mesh, 5 iterations per block) `1e-3` took 28 s instead of 69 s at `1e-8` with 12.6 / 11.7 mm
+      instead of 13.8 / 11.1 mm; `1e-2` stalled (13.9 / 14.1 mm).
 
     **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.PanoManFit`][] and `stats`:
-    per block `steps`, `energy0`, `energy`, `seconds`; `init_s` (β MLP + g).
+    per block `steps` (LM iterations), `cg_steps` (inner PCG iterations, all LM iterations),
+    `energy0`, `energy`, `seconds`; `init_s` (β MLP or projection, and g).
     """
     top = model.topology
     K = model.n_components
@@ -309,6 +339,10 @@ def fit_panoman(
             b = model.beta_mlp(pose_features(theta, joint_names)).astype(jnp.float64)
             kb = model.part_sizes[0]
             bl, ba = model.with_body(b[:kb], b[kb:])
+    if init_mesh is not None:
+        bl, ba = (jnp.asarray(x) for x in model.motion_coefficients(init_mesh, np.asarray(alpha)))
+        if align_to is None:
+            align_to = init_mesh
     align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
     dec = _evaluate_jit(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
     V = dec.value.vertices
@@ -333,7 +367,8 @@ def fit_panoman(
         ) if constraints.param_index.shape[0] == 0 else constraints  # fmt: skip
         tb = time.perf_counter()
         sol = shell_solve(tg, _Rest(tg), params0, V, top, cons, solver=solver, weight=weight,
-                          max_steps=max_steps, throw=False)  # fmt: skip
+                          max_steps=max_steps, cg_rtol=cg_rtol, cg_max_steps=cg_max_steps,
+                          throw=False)  # fmt: skip
         fit = sol.value
         p = fit.params
         bl = bl.at[s].set(p["bl"])
@@ -342,6 +377,7 @@ def fit_panoman(
             alpha = p["alpha"]
         V = fit.vertices
         stats["blocks"].append(dict(part=part, steps=int(sol.stats["steps"]),
+                                    cg_steps=int(sol.stats["cg_steps"]),
                                     energy0=float(sol.stats["energy0"]),
                                     energy=float(sol.stats["energy"]),
                                     seconds=time.perf_counter() - tb))  # fmt: skip

@@ -102,7 +102,7 @@ class MLP(eqx.Module):
         )
 
 
-def _init_mlp(key, sizes, relu, bias, x, y) -> MLP:
+def _init_mlp(key, sizes, relu, bias, x, y, x_scale_floor=0.0) -> MLP:
     keys = jax.random.split(key, len(sizes) - 1)
     Ws, bs = [], []
     for k, (a, b), has_b in zip(keys, zip(sizes[:-1], sizes[1:]), bias):
@@ -114,7 +114,7 @@ def _init_mlp(key, sizes, relu, bias, x, y) -> MLP:
     # input's small deviation there into a huge activation (e.g. an IK pose moving a joint the
     # training poses never move)
     sd = jnp.std(x, 0)
-    x_scale = jnp.where(sd > 1e-2 * jnp.max(sd), sd, 1.0)
+    x_scale = jnp.where(sd > 1e-2 * jnp.max(sd), jnp.maximum(sd, x_scale_floor), 1.0)
     y_mean = jnp.mean(y, 0)
     y_scale = jnp.maximum(jnp.std(y - y_mean), 1e-12)
     return MLP(tuple(Ws), tuple(bs), x_mean, x_scale, y_mean, y_scale, tuple(relu))
@@ -157,13 +157,16 @@ def fit_mlp(
     batch: int = 128,
     learning_rate: float = 1e-3,
     weight_decay: float = 1e-5,
+    x_scale_floor: float = 0.0,
 ) -> Solution:
     """Trains an [`bodyprior.panoman.MLP`][] `x → y` by AdamW on mean squared error (standardised
     outputs), cosine-decayed learning rate, random minibatches; the whole run is one jitted scan.
 
     **Arguments:** `key`; `x (N, n_in)`, `y (N, n_out)`; `hidden` ReLU layer widths; `rank`: a
     linear bottleneck of this width before the output (low-rank output layer); `n_steps`,
-    `batch`, `learning_rate`, `weight_decay`.
+    `batch`, `learning_rate`, `weight_decay`; `x_scale_floor`: the smallest input scale, in the
+    units of `x` (inputs are standardised by their training std, at least this; inputs constant in
+    training get 1).
 
     **Returns:** a [`bodyprior.Solution`][] with the MLP and `stats`: `loss` `(n_steps,)` history
     (standardised MSE), `train_rmse` (in units of `y`), `n_parameters`, `seconds`.
@@ -179,7 +182,7 @@ def fit_mlp(
     relu = (True,) * len(hidden) + ((False,) if rank else ()) + (False,)
     bias = (True,) * len(hidden) + ((False,) if rank else ()) + (True,)
     k_init, k_train = jax.random.split(key)
-    mlp = _init_mlp(k_init, sizes, relu, bias, x, y)
+    mlp = _init_mlp(k_init, sizes, relu, bias, x, y, float(x_scale_floor))
     t0 = time.perf_counter()
     mlp, hist = _train(mlp, x, y, k_train, check_positive_int(n_steps, "n_steps"),
                        check_positive_int(batch, "batch"), float(learning_rate),
@@ -253,13 +256,18 @@ class PanoManModel(eqx.Module):
         """`(β_L, β_A)` of the rest body: every part at its neutral coefficients."""
         return self.neutral_lengths, self.neutral_angles
 
+    def with_part(self, part: str, beta_part_lengths, beta_part_angles):
+        """`(β_L, β_A)` `(K,)` with `part`'s coefficients set (each `(K_part,)`) and the other
+        parts neutral."""
+        s = self.part_slice(part)
+        return (
+            self.neutral_lengths.at[s].set(beta_part_lengths),
+            self.neutral_angles.at[s].set(beta_part_angles),
+        )
+
     def with_body(self, beta_body_lengths, beta_body_angles):
         """`(β_L, β_A)` with the body coefficients set and face and hands neutral."""
-        s = self.part_slice("body")
-        return (
-            self.neutral_lengths.at[s].set(beta_body_lengths),
-            self.neutral_angles.at[s].set(beta_body_angles),
-        )
+        return self.with_part("body", beta_body_lengths, beta_body_angles)
 
     def shape(self, alpha: Float[ArrayLike, " P"]) -> Float[Array, "V 3"]:
         """`B_S(α)` (eq. 2), metres."""
@@ -274,6 +282,28 @@ class PanoManModel(eqx.Module):
         c = (r.reshape(-1, B.shape[1]) - np.asarray(self.shape_mean, np.float64).reshape(-1)).T
         alpha = np.linalg.lstsq(B.T, c, rcond=None)[0].T
         return alpha[0] if r.ndim == 2 else alpha
+
+    def motion_coefficients(
+        self, vertices: Float[ArrayLike, "V 3"], alpha: Float[ArrayLike, " P"]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Least-squares `(β_L, β_A)` `(K,)` of a posed mesh `(V, 3)` (metres) of shape `α` (host):
+        its RLA relative to `B_S(α)` projected onto all K components (eq. 3, no correction).
+
+        The initialisation [`bodyprior.panoman.fit_panoman`][] uses with `init_mesh` (e.g. the IK
+        mesh of the LBS model): on held-out frames it decoded to 10–30× less error than the
+        paper's β(θ) MLP of the IK pose (docs/results_panoman.md)."""
+        from ._rla import rla_encode
+
+        v = check_array(vertices, "vertices", (self.topology.n_vertices, 3))
+        a = check_array(alpha, "alpha", (self.shape_basis.shape[0],))
+        x = rla_encode(jnp.asarray(v, jnp.float64), self.shape(jnp.asarray(a, jnp.float64)),
+                       self.topology)  # fmt: skip
+        out = []
+        for X, M, mean in ((x.lengths, self.components_lengths, self.mean_lengths),
+                           (x.angles, self.components_angles, self.mean_angles)):  # fmt: skip
+            M = np.asarray(M, np.float64)
+            out.append(_project(M, (np.asarray(X) - np.asarray(mean, np.float64))[None])[0])
+        return out[0], out[1]
 
     def info_dict(self) -> dict:
         return json.loads(self.info)
@@ -543,7 +573,11 @@ def train_panoman(
         names = load_default_body("cmu_mb").joint_names  # the joint order of `body_pose`
         pose = jnp.asarray(np.asarray(data.body_pose)[kind == 0])
         theta = jax.vmap(lambda p: pose_features(p, names))(pose)
-        sol = fit_mlp(k_beta, theta, xb, tuple(beta_hidden), n_steps=beta_steps, batch=batch)
+        # input scales ≥ 0.1 rad: joints the retargeted clips barely move (Spine, Neck1: std
+        # 0.006–0.03 rad) otherwise turn an IK pose's few degrees there into 10–30 standard
+        # deviations, and β(θ_IK) decoded 481 mm from the truth (β(θ_true): 63 mm)
+        sol = fit_mlp(k_beta, theta, xb, tuple(beta_hidden), n_steps=beta_steps, batch=batch,
+                      x_scale_floor=0.1)  # fmt: skip
         beta_mlp = sol.value
         stats["beta_mlp"] = dict(train_rmse=sol.stats["train_rmse"],
                                  n_parameters=sol.stats["n_parameters"],
