@@ -173,11 +173,12 @@ def _write_zip(path: str | os.PathLike, metadata: dict, members: dict[str, bytes
 
 
 def _read_zip(
-    path: str, fmt: str, version: int, members: tuple[str, ...]
+    path: str, fmt: str, version: int, members: tuple[str, ...], optional: tuple[str, ...] = ()
 ) -> tuple[dict, dict[str, bytes]]:
     """`(metadata, {member: bytes})` of a container written by `_write_zip`, after checking that
     it is a readable zip with those members, of format `fmt` and version `version`, and that
-    "leaves.eqx" matches the recorded sha256. Raises `ValueError` naming `path` otherwise."""
+    "leaves.eqx" matches the recorded sha256. Raises `ValueError` naming `path` otherwise.
+    Members named in `optional` are returned when present (members added to a format later)."""
     if not os.path.isfile(path):
         raise ValueError(f"`path`: no such file {path!r}.")
     try:
@@ -189,6 +190,7 @@ def _read_zip(
                 )
             raw = zf.read("metadata.json")
             data = {m: zf.read(m) for m in members}
+            data.update({m: zf.read(m) for m in optional if m in zf.namelist()})
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as e:
         raise ValueError(f"{path!r} is not a readable {fmt} file: {e}") from e
     except zipfile.error as e:  # pragma: no cover - other zip errors (e.g. CRC)

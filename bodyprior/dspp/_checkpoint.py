@@ -25,7 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._io import _read_zip, _write_zip
-from ._nets import DSPPConfig, GeometryGAN, PosePrior, ShapePrior, init_aegan, init_geometry_gan
+from ._nets import (
+    _V1_DEFAULTS,
+    DSPPConfig,
+    GeometryGAN,
+    PosePrior,
+    ShapePrior,
+    init_aegan,
+    init_geometry_gan,
+)
 
 PRIOR_FORMAT = "bodyprior.dspp.prior"
 CHECKPOINT_FORMAT = "bodyprior.dspp.checkpoint"
@@ -120,10 +128,18 @@ def checkpoint_path(checkpoint_dir, tag: str) -> str:
     return os.path.join(os.fspath(checkpoint_dir), f"{tag}.ckpt")
 
 
-def save_checkpoint(checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records) -> None:
-    payload = _serialise(ts)
+def _npy(a, dtype) -> bytes:
     buf = io.BytesIO()
-    np.save(buf, np.asarray(records, np.float32), allow_pickle=False)
+    np.save(buf, np.asarray(a, dtype), allow_pickle=False)
+    return buf.getvalue()
+
+
+def save_checkpoint(
+    checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records, monitor=None
+) -> None:
+    """`monitor`: optional `(rows (M, 4), best model, best step)` of the collapse monitor, stored
+    as the members `monitor.npy` and `best.eqx` (absent in checkpoints without a monitor)."""
+    payload = _serialise(ts)
     meta = {
         "format": CHECKPOINT_FORMAT,
         "version": FORMAT_VERSION,
@@ -133,24 +149,35 @@ def save_checkpoint(checkpoint_dir, tag, ts, cfg: DSPPConfig, key, u, records) -
         "key": [int(k) for k in np.asarray(key)],
         "data_sha256": _fingerprint(u),
     }
-    members = {"leaves.eqx": payload, "records.npy": buf.getvalue()}
+    members = {"leaves.eqx": payload, "records.npy": _npy(records, np.float32)}
+    if monitor is not None and monitor[1] is not None:
+        rows, best, best_step = monitor
+        meta["best_step"] = int(best_step)
+        members["monitor.npy"] = _npy(rows, np.float64)
+        members["best.eqx"] = _serialise(best)
     _write_zip(checkpoint_path(checkpoint_dir, tag), meta, members)
 
 
 def load_checkpoint(checkpoint_dir, tag, like, cfg: DSPPConfig, key, u):
-    """Returns `(train_state, records)` from `checkpoint_dir/<tag>.ckpt`, or `None` if there is no
-    checkpoint. Raises `ValueError` if it belongs to another run (data, key, sizes) or is
-    corrupt."""
+    """Returns `(train_state, records, monitor_rows, best_model, best_step)` from
+    `checkpoint_dir/<tag>.ckpt`, or `None` if there is no checkpoint (`monitor_rows` `(0, 4)`,
+    `best_model` `None` and `best_step` -1 for a checkpoint without a collapse monitor, e.g. any
+    written before it existed). Raises `ValueError` if it belongs to another run (data, key,
+    sizes) or is corrupt."""
     d = os.fspath(checkpoint_dir)
     if not os.path.isdir(d):
         raise ValueError(f"`checkpoint_dir`: no such directory {d!r}.")
     path = checkpoint_path(d, tag)
     if not os.path.exists(path):
         return None
-    meta, data = _read_zip(path, CHECKPOINT_FORMAT, FORMAT_VERSION, ("leaves.eqx", "records.npy"))
+    meta, data = _read_zip(path, CHECKPOINT_FORMAT, FORMAT_VERSION, ("leaves.eqx", "records.npy"),
+                           optional=("monitor.npy", "best.eqx"))  # fmt: skip
     if meta.get("tag") != tag:
         raise ValueError(f"{path!r}: checkpoint of {meta.get('tag')!r}, expected {tag!r}.")
-    if meta.get("config") != _resume_config(cfg):
+    stored = meta.get("config")
+    if isinstance(stored, dict):  # written before the newer config fields: the paper's values
+        stored = {k: v for k, v in {**_V1_DEFAULTS, **stored}.items() if k != "n_steps"}
+    if stored != _resume_config(cfg):
         raise ValueError(
             f"{path!r}: the checkpoint was written with another config {meta.get('config')}; "
             "use a fresh `checkpoint_dir` or the same config."
@@ -166,4 +193,14 @@ def load_checkpoint(checkpoint_dir, tag, like, cfg: DSPPConfig, key, u):
         raise ValueError(f"{path!r}: records.npy is corrupted: {e}") from e
     if records.shape != (int(ts.step), 5) or int(ts.step) != meta.get("step"):
         raise ValueError(f"{path!r}: step count and loss record disagree.")
-    return ts, records
+    rows, best, best_step = np.zeros((0, 4)), None, -1
+    if "best.eqx" in data and "monitor.npy" in data:
+        try:
+            rows = np.load(io.BytesIO(data["monitor.npy"]), allow_pickle=False)
+        except ValueError as e:
+            raise ValueError(f"{path!r}: monitor.npy is corrupted: {e}") from e
+        if rows.ndim != 2 or rows.shape[1] != 4:
+            raise ValueError(f"{path!r}: monitor.npy must have shape (M, 4), got {rows.shape}.")
+        best = _deserialise(data["best.eqx"], like.model, path)
+        best_step = int(meta.get("best_step", -1))
+    return ts, records, rows, best, best_step

@@ -213,6 +213,23 @@ class DSPPConfig:
       calls).
     - `checkpoint_every`: cycles between checkpoints when a checkpoint directory is given (rounded
       to a multiple of `steps_per_call`).
+    - `disc_input_gain`: fixed factor on every discriminator input (codes for the AE-GANs,
+      normalised geometry for the baselines); the discriminator is `D(gain * z)`, a
+      `gain`-Lipschitz function of its input instead of a 1-Lipschitz one. 1 is the paper's recipe.
+      Spectral normalisation makes a discriminator 1-Lipschitz in its input, so with codes of
+      per-dimension std ~1.3 (the pose AE's) its logits stay within ~0.2 of each other, its loss
+      sits at log 4, and Adam piles the constant gradient into one singular direction until the
+      generator gets no signal: the pose prior collapses to one pose (docs/results_dspp.md). The
+      gain fixes the latent scale that the paper leaves free. Default 1 (the paper's);
+      `DSPPConfig.preset("pose")` uses 20.
+    - `generator_learning_rate`: Adam step size of the generator; `None` = `learning_rate`.
+    - `gan_b1`: Adam's first-moment decay for the discriminator and the generator (the auto-encoder
+      keeps 0.9). Default 0.9 (PyTorch's and the paper's); 0.5 is the DCGAN choice.
+    - `monitor_every`: cycles between collapse-monitor evaluations when training gets
+      `validation` data (rounded to a multiple of `steps_per_call`).
+    - `monitor_samples`: generated (and validation) items per monitor evaluation.
+
+    Named presets: [`bodyprior.dspp.DSPPConfig.preset`][].
     """
 
     latent_dim: int = 32
@@ -230,10 +247,16 @@ class DSPPConfig:
     learning_rate: float = 1e-3
     steps_per_call: int = 1000
     checkpoint_every: int = 10_000
+    disc_input_gain: float = 1.0
+    generator_learning_rate: float | None = None
+    gan_b1: float = 0.9
+    monitor_every: int = 5000
+    monitor_samples: int = 256
 
     def __post_init__(self):
         ints = ("latent_dim", "noise_dim", "n_steps", "batch_size", "steps_per_call",
-                "checkpoint_every", "pointnet_points")  # fmt: skip
+                "checkpoint_every", "pointnet_points", "monitor_every",
+                "monitor_samples")  # fmt: skip
         for name in ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "n_steps" else 1):
@@ -255,6 +278,44 @@ class DSPPConfig:
             raise ValueError(
                 f"DSPPConfig.`learning_rate` must be a float in (0, 1), got {self.learning_rate!r}."
             )
+        glr = self.generator_learning_rate
+        if glr is not None and not (isinstance(glr, float) and 0.0 < glr < 1.0):
+            raise ValueError(
+                "DSPPConfig.`generator_learning_rate` must be None or a float in (0, 1), got "
+                f"{glr!r}."
+            )
+        if not (isinstance(self.gan_b1, float) and 0.0 <= self.gan_b1 < 1.0):
+            raise ValueError(f"DSPPConfig.`gan_b1` must be a float in [0, 1), got {self.gan_b1!r}.")
+        g = self.disc_input_gain
+        if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 < g < 1e6:
+            raise ValueError(f"DSPPConfig.`disc_input_gain` must be a positive float, got {g!r}.")
+        object.__setattr__(self, "disc_input_gain", float(g))  # 20 and 20.0: one static config
+        if self.monitor_samples < 2:
+            raise ValueError(
+                f"DSPPConfig.`monitor_samples` must be at least 2, got {self.monitor_samples}."
+            )
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> DSPPConfig:
+        """A named configuration, with any field overridden by keyword.
+
+        - `"paper"`: the printed recipe (Adam defaults for all three parts, a 1-Lipschitz SN
+          discriminator on the raw codes); equal to `DSPPConfig()`.
+        - `"shape"`: the shape prior's default, the paper's recipe (it does not collapse: the shape
+          codes are ~5x larger than the pose codes).
+        - `"pose"`: the pose prior's default: `disc_input_gain=20`, `generator_learning_rate=2e-4`
+          (measured against the paper's recipe in docs/results_dspp.md).
+        - `"geometry_pose"`: the geometry-space pose GAN baseline: `disc_input_gain=5`.
+        """
+        table = {
+            "paper": {},
+            "shape": {},
+            "pose": dict(disc_input_gain=20.0, generator_learning_rate=2e-4),
+            "geometry_pose": dict(disc_input_gain=5.0),
+        }
+        if name not in table:
+            raise ValueError(f"`name` must be one of {sorted(table)}, got {name!r}.")
+        return cls(**{**table[name], **overrides})
 
     def to_dict(self) -> dict:
         return {
@@ -264,9 +325,17 @@ class DSPPConfig:
     @classmethod
     def from_dict(cls, d: dict) -> DSPPConfig:
         names = {f.name for f in dataclasses.fields(cls)}
+        if isinstance(d, dict):
+            # Files written before these fields existed were trained with the paper's values.
+            d = {**_V1_DEFAULTS, **d}
         if not isinstance(d, dict) or set(d) != names:
             raise ValueError(f"A DSPPConfig dict must have exactly the keys {sorted(names)}.")
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+# Fields added after format version 1 and the values every earlier file was trained with.
+_V1_DEFAULTS = dict(disc_input_gain=1.0, generator_learning_rate=None, gan_b1=0.9,
+                    monitor_every=5000, monitor_samples=256)  # fmt: skip
 
 
 def _check_input(x, name: str, shape: tuple[int, ...]):
@@ -327,9 +396,8 @@ class _AEGANPrior(eqx.Module):
         """Discriminator logit of a code (higher = judged more real; `sigmoid` = probability).
         Uses the trained spectral-norm state (inference mode); differentiable in `z`."""
         _check_input(z, "z", (self.latent_dim,))
-        logit, _ = self.discriminator(
-            jnp.asarray(z).astype(self.mean.dtype), self.disc_state, inference=True
-        )
+        z = self.config.disc_input_gain * jnp.asarray(z).astype(self.mean.dtype)
+        logit, _ = self.discriminator(z, self.disc_state, inference=True)
         return logit
 
 
@@ -386,7 +454,9 @@ class GeometryGAN(eqx.Module):
         """Discriminator logit of one item (higher = judged more real)."""
         _check_input(x, "x", tuple(self.mean.shape))
         u = ((jnp.asarray(x).astype(self.mean.dtype) - self.mean) / self.scale).reshape(-1)
-        y, _ = self.discriminator(self._disc_input(u), self.disc_state, inference=True)
+        y, _ = self.discriminator(
+            self.config.disc_input_gain * self._disc_input(u), self.disc_state, inference=True
+        )
         return y
 
 
