@@ -1,5 +1,8 @@
 """DSPP networks, training, checkpoints and sampling (bodyprior.dspp, H-core)."""
 
+import dataclasses
+from pathlib import Path
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -248,3 +251,118 @@ def test_bad_inputs(tmp_path, getkey):
         dspp.save_prior(tmp_path / "x.dspp", object())
     with pytest.raises(ValueError, match="no such file"):
         dspp.load_prior(tmp_path / "none.dspp")
+
+
+# Files written by the code before the collapse fix (commit 0e2e7e5, x64 on as in this suite):
+# `train_pose_prior(_v1_poses(), key=jr.PRNGKey(0), config=DSPPConfig(**V1_CFG, n_steps=20),
+# checkpoint_dir=...)` -> the .ckpt,
+# `save_prior` of its result -> the .dspp, `dspp.sample(prior, 3, key=jr.PRNGKey(1))` -> the .npy.
+DATA = Path(__file__).parent / "data"
+V1_CFG = dict(latent_dim=4, noise_dim=4, ae_hidden=(8,), generator_hidden=(8,),
+              discriminator_hidden=(8,), batch_size=2, steps_per_call=10,
+              checkpoint_every=10)  # fmt: skip
+
+
+def _v1_poses():
+    return (0.3 * np.random.default_rng(0).standard_normal((40, 20, 3))).astype(np.float32)
+
+
+def test_presets_and_v1_files_load(tmp_path):
+    data_dir = DATA
+    assert dspp.DSPPConfig.preset("paper") == dspp.DSPPConfig()
+    assert dspp.DSPPConfig.preset("shape") == dspp.DSPPConfig()
+    pose = dspp.DSPPConfig.preset("pose", n_steps=7)
+    assert pose.disc_input_gain == 20.0 and pose.generator_learning_rate == 2e-4
+    assert pose.n_steps == 7 and dspp.DSPPConfig.preset("geometry_pose").disc_input_gain == 5.0
+    assert dspp.DSPPConfig.from_dict(pose.to_dict()) == pose
+    # a prior saved before the fix loads with the paper's values and samples as it did
+    prior = dspp.load_prior(data_dir / "dspp_v1_pose_tiny.dspp")
+    assert prior.config.disc_input_gain == 1.0 and prior.config.generator_learning_rate is None
+    want = np.load(data_dir / "dspp_v1_pose_tiny_samples.npy")
+    got = np.asarray(dspp.sample(prior, 3, key=jr.PRNGKey(1)))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)  # float32 ulps across CPUs
+    # the gain-1 path of the new training cycle is the old cycle: retraining the fixture's run
+    # reproduces the old prior (to float32 ulps: the fixture was written on another CPU)
+    cfg = dspp.DSPPConfig(**V1_CFG, n_steps=20)
+    fresh = dspp.train_pose_prior(_v1_poses(), key=jr.PRNGKey(0), config=cfg, progress=False)
+    for a, b in zip(_leaves(fresh.value), _leaves(prior)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    # a checkpoint written before the fix resumes (its config gets the paper's values)
+    (tmp_path / "aegan_pose.ckpt").write_bytes(
+        (data_dir / "dspp_v1_aegan_pose_tiny.ckpt").read_bytes()
+    )
+    cfg = dataclasses.replace(cfg, n_steps=30)
+    resumed = dspp.train_pose_prior(_v1_poses(), key=jr.PRNGKey(0), config=cfg,
+                                    checkpoint_dir=tmp_path, progress=False)  # fmt: skip
+    assert resumed.aux.n_steps == 30 and resumed.aux.finite
+    np.testing.assert_allclose(resumed.aux.d_loss[:20], fresh.aux.d_loss, rtol=1e-5)
+    fresh = dspp.train_pose_prior(_v1_poses(), key=jr.PRNGKey(0), config=cfg, progress=False)
+    # the gain is not a no-op: the same run with the pose preset's gain trains differently
+    gained = dspp.train_pose_prior(_v1_poses(), key=jr.PRNGKey(0), progress=False,
+                                   config=dspp.DSPPConfig(**V1_CFG, n_steps=30,
+                                                          disc_input_gain=20.0))  # fmt: skip
+    assert not np.array_equal(gained.aux.d_loss, fresh.aux.d_loss)
+
+
+def test_collapse_monitor_selects_and_resumes(tmp_path):
+    data, val = _poses(n=30), _poses(n=12, seed=7)
+    cfg = _cfg(monitor_every=5, monitor_samples=8)
+
+    def train(select="best", validation=val, ckpt=None, **kw):
+        c = dataclasses.replace(cfg, **kw)
+        return dspp.train_pose_prior(data, key=jr.PRNGKey(2), config=c, validation=validation,
+                                     select=select,
+                                     checkpoint_dir=ckpt, progress=False)  # fmt: skip
+
+    sol = train()
+    log = sol.aux
+    np.testing.assert_array_equal(log.monitor_step, [5, 10, 15, 20])
+    assert np.all((log.monitor_one_nna >= 0) & (log.monitor_one_nna <= 1))
+    assert np.all(log.monitor_diversity > 0) and np.all(log.monitor_diversity_ref > 0)
+    # diversity_ref is the validation items' own spread (degrees): the same at every check
+    assert np.ptp(log.monitor_diversity_ref) == 0
+    best = int(sol.stats["best_step"])
+    i = list(log.monitor_step).index(best)
+    assert np.abs(log.monitor_one_nna[i] - 0.5) == np.min(np.abs(log.monitor_one_nna - 0.5))
+    # monitoring never changes training: "last" is the run without validation, bitwise
+    last = train(select="last")
+    plain = train(validation=None)
+    assert plain.aux.monitor.shape == (0, 4) and int(plain.stats["best_step"]) == -1
+    for a, b in zip(_leaves(last.value), _leaves(plain.value)):
+        np.testing.assert_array_equal(a, b)
+    # "best" is the model after `best_step` cycles
+    short = train(validation=None, n_steps=best)
+    for a, b in zip(_leaves(sol.value), _leaves(short.value)):
+        np.testing.assert_array_equal(a, b)
+    # an interrupted monitored run resumes with its monitor rows and best model
+    train(ckpt=tmp_path, n_steps=10)
+    res = train(ckpt=tmp_path)
+    np.testing.assert_array_equal(res.aux.monitor, log.monitor)
+    assert int(res.stats["best_step"]) == best
+    for a, b in zip(_leaves(res.value), _leaves(sol.value)):
+        np.testing.assert_array_equal(a, b)
+    dspp.plot_train_log(log, tmp_path / "log.png", title="monitor")
+    assert (tmp_path / "log.png").stat().st_size > 10_000
+
+
+@pytest.mark.bad_input
+def test_bad_monitor_and_preset_inputs():
+    with pytest.raises(ValueError, match="disc_input_gain"):
+        dspp.DSPPConfig(disc_input_gain=0.0)
+    with pytest.raises(ValueError, match="gan_b1"):
+        dspp.DSPPConfig(gan_b1=1.0)
+    with pytest.raises(ValueError, match="generator_learning_rate"):
+        dspp.DSPPConfig(generator_learning_rate=-1.0)
+    with pytest.raises(ValueError, match="monitor_every"):
+        dspp.DSPPConfig(monitor_every=0)
+    with pytest.raises(ValueError, match="`name`"):
+        dspp.DSPPConfig.preset("vposer")
+    cfg = _cfg()
+    with pytest.raises(ValueError, match="`select`"):
+        dspp.train_pose_prior(_poses(), key=jr.PRNGKey(0), config=cfg, select="first")
+    with pytest.raises(ValueError, match=r"`validation` must have shape \(\*, 20, 3\)"):
+        dspp.train_pose_prior(_poses(), key=jr.PRNGKey(0), config=cfg,
+                              validation=np.zeros((4, 19, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match="at least 2"):
+        dspp.train_pose_prior(_poses(), key=jr.PRNGKey(0), config=cfg,
+                              validation=np.zeros((1, 20, 3)))  # fmt: skip
