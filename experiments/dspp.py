@@ -9,11 +9,19 @@ Poses: every BVH clip under `--mocap` (default `../shared/data/mocap`) through
 `bp.load_mocap` at 4 frames/s, split by whole clips (`split_by_clip`, 20 % test).
 
 Methods: (a) `aegan` the DSPP prior; (b) `geomgan` a GAN whose discriminator sees geometry (PointNet
-for shapes, MLP on Euler angles for poses); (c) `pca` Gaussian sampling of a PCA space with as many
+for shapes, MLP on Euler angles for poses); both trained with the library's presets
+(`DSPPConfig.preset`: "shape", "pose", "geometry_pose"), and for poses also with the paper's recipe
+as printed (`aegan_paper`, `geomgan_paper`: preset "paper", which collapses on pose codes; see
+docs/results_dspp.md); (c) `pca` Gaussian sampling of a PCA space with as many
 components as the AE-GAN latent dimension; (d) `pca3sigma` the same PCA with every coefficient at
 one of its +-3 sigma extremes (random signs); plus `pcauniform` (coefficients uniform in
 [-3 sigma, 3 sigma]) and `train`, a random draw of *real training items*: the score a perfect
 generator of the training distribution would get against the test set (the reference row).
+
+Collapse monitor: 10 % of the training clips (poses) and 10 % of the training bodies (shapes) are
+held out as validation items; every `monitor_every` cycles training scores a fixed set of samples
+against them (1-NNA, diversity) and keeps the model closest to 1-NNA 0.5 (`select="best"`), which is
+the model evaluated here. Keys `monitor_*_<job>` and `best_step_<job>`; the loss plots show it.
 
 Metrics (H-metrics' `bodyprior.generative_metrics`): MMD, COV, 1-NNA (0.5 ideal), specificity (mean
 distance to the nearest training item), diversity (average pairwise distance); shapes with the mean
@@ -56,6 +64,8 @@ SIZES = {
                  n_train_ref_pose=1500, render=8, mocap=None,
                  steps=dict(aegan_shape=8000, geomgan_shape=4000, aegan_pose=100000,
                             geomgan_pose=100000),
+                 monitor=dict(aegan_shape=1000, geomgan_shape=500, aegan_pose=5000,
+                              geomgan_pose=5000),
                  batch=dict(aegan_shape=16, geomgan_shape=2, aegan_pose=16, geomgan_pose=16),
                  spc=dict(aegan_shape=500, geomgan_shape=500, aegan_pose=5000, geomgan_pose=5000)),
     "quick": dict(n_bodies=400, n_eval=64, n_train_ref=128, n_eval_pose=128,
@@ -64,17 +74,26 @@ SIZES = {
                          "cmu_daz-friendly_papagina-acLSTM/indian_dance"),
                   steps=dict(aegan_shape=1000, geomgan_shape=300, aegan_pose=3000,
                              geomgan_pose=3000),
+                  monitor=dict(aegan_shape=250, geomgan_shape=100, aegan_pose=1000,
+                               geomgan_pose=1000),
                   batch=dict(aegan_shape=8, geomgan_shape=2, aegan_pose=16, geomgan_pose=16),
                   spc=dict(aegan_shape=250, geomgan_shape=100, aegan_pose=1000, geomgan_pose=1000)),
     "tiny": dict(n_bodies=120, n_eval=24, n_train_ref=48, n_eval_pose=32, n_train_ref_pose=32,
                  render=2,
                  mocap=("cmu_3dsmax-friendly_yuki-koyama-bvh11",),
                  steps=dict(aegan_shape=200, geomgan_shape=100, aegan_pose=400, geomgan_pose=400),
+                 monitor=dict(aegan_shape=100, geomgan_shape=100, aegan_pose=200, geomgan_pose=200),
                  batch=dict(aegan_shape=8, geomgan_shape=2, aegan_pose=16, geomgan_pose=16),
                  spc=dict(aegan_shape=100, geomgan_shape=100, aegan_pose=200, geomgan_pose=200)),
 }  # fmt: skip
 
 METHODS = ("aegan", "geomgan", "pca", "pca3sigma", "pcauniform", "train")
+PAPER_METHODS = ("aegan_paper", "geomgan_paper")  # poses only: the paper's recipe (it collapses)
+# Training jobs: (name, the SIZES entry it uses, preset).
+JOBS = (("aegan_shape", "aegan_shape", "shape"), ("geomgan_shape", "geomgan_shape", "shape"),
+        ("aegan_pose", "aegan_pose", "pose"), ("geomgan_pose", "geomgan_pose", "geometry_pose"),
+        ("aegan_pose_paper", "aegan_pose", "paper"),
+        ("geomgan_pose_paper", "geomgan_pose", "paper"))  # fmt: skip
 
 
 def _log(msg: str) -> None:
@@ -87,15 +106,18 @@ def _shape_data(seed: int, n: int, progress: bool):
     x = np.asarray(pop.vertices[:, np.asarray(vertex_map)], np.float32)
     perm = np.random.default_rng(seed).permutation(n)
     n_test = max(2, int(round(0.2 * n)))
-    return x[perm[n_test:]], x[perm[:n_test]], np.asarray(faces)
+    n_val = max(2, int(round(0.1 * (n - n_test))))
+    train, val = perm[n_test + n_val :], perm[n_test : n_test + n_val]
+    return x[train], x[val], x[perm[:n_test]], np.asarray(faces)
 
 
 def _pose_data(mocap: Path, subdirs, seed: int, progress: bool):
     paths = [mocap / s for s in subdirs] if subdirs else [mocap]
     poses = bp.load_mocap([str(p) for p in paths], fps=4.0, progress=progress)
     train, test = bp.split_by_clip(poses, 0.2, seed=seed)
-    return (np.asarray(train.euler, np.float32), np.asarray(test.euler, np.float32),
-            poses.n_poses, len(poses.clip_names))  # fmt: skip
+    train, val = bp.split_by_clip(train, 0.1, seed=seed)
+    return (np.asarray(train.euler, np.float32), np.asarray(val.euler, np.float32),
+            np.asarray(test.euler, np.float32), poses.n_poses, len(poses.clip_names))  # fmt: skip
 
 
 def _subset(x: np.ndarray, n: int, rng) -> np.ndarray:
@@ -132,46 +154,61 @@ def run(args) -> dict:
 
     # ---------------------------------------------------------------- data
     t = time.perf_counter()
-    x_train, x_test, faces = _shape_data(args.seed, S["n_bodies"], progress)
+    x_train, x_val, x_test, faces = _shape_data(args.seed, S["n_bodies"], progress)
     timings["shape_data_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    p_train, p_test, n_poses, n_clips = _pose_data(
+    p_train, p_val, p_test, n_poses, n_clips = _pose_data(
         Path(args.mocap), S["mocap"], args.seed, progress
     )
     timings["pose_data_s"] = time.perf_counter() - t
     metrics.update(
-        shape_n_train=int(x_train.shape[0]), shape_n_test=int(x_test.shape[0]),
-        shape_n_vertices=int(x_train.shape[1]), pose_n_train=int(p_train.shape[0]),
+        shape_n_train=int(x_train.shape[0]), shape_n_val=int(x_val.shape[0]),
+        shape_n_test=int(x_test.shape[0]), shape_n_vertices=int(x_train.shape[1]),
+        pose_n_train=int(p_train.shape[0]), pose_n_val=int(p_val.shape[0]),
         pose_n_test=int(p_test.shape[0]), pose_n_clips=n_clips,
     )  # fmt: skip
     _log(f"shapes {x_train.shape[0]}/{x_test.shape[0]} train/test; poses {p_train.shape[0]}/"
          f"{p_test.shape[0]} from {n_clips} clips")  # fmt: skip
 
-    def cfg(name):
+    def cfg(job):
+        _, name, preset = next(j for j in JOBS if j[0] == job)
         kw = {}
         if mode == "tiny":  # fewer/smaller layers: same code paths, a fraction of the compile time
             kw = dict(latent_dim=16, noise_dim=16, ae_hidden=(64,), generator_hidden=(64,),
                       discriminator_hidden=(64,), pointnet_hidden=(32,),
                       pointnet_head_hidden=(32,), pointnet_points=256, geometry_pose_hidden=(64,),
                       geometry_generator_hidden=(64,))  # fmt: skip
-        return dspp.DSPPConfig(
-            n_steps=S["steps"][name], batch_size=S["batch"][name], steps_per_call=S["spc"][name],
-            checkpoint_every=S["spc"][name] * 4, **kw,
+        return dspp.DSPPConfig.preset(
+            preset, n_steps=S["steps"][name], batch_size=S["batch"][name],
+            steps_per_call=S["spc"][name], checkpoint_every=S["spc"][name] * 4,
+            monitor_every=S["monitor"][name], **kw,
         )  # fmt: skip
 
     # ---------------------------------------------------------------- training
     models, logs = {}, {}
-    kw = dict(checkpoint_dir=ckpt, progress=progress)
-    jobs = (
-        ("aegan_shape", lambda: dspp.train_shape_prior(
-            x_train, key=k_shape, config=cfg("aegan_shape"), **kw)),
-        ("geomgan_shape", lambda: dspp.train_geometry_gan(
-            x_train, kind="shape", key=k_geo_s, config=cfg("geomgan_shape"), **kw)),
-        ("aegan_pose", lambda: dspp.train_pose_prior(
-            p_train, key=k_pose, config=cfg("aegan_pose"), **kw)),
-        ("geomgan_pose", lambda: dspp.train_geometry_gan(
-            p_train, kind="pose", key=k_geo_p, config=cfg("geomgan_pose"), **kw)),
-    )  # fmt: skip
+    train_keys = {
+        "aegan_shape": k_shape,
+        "geomgan_shape": k_geo_s,
+        "aegan_pose": k_pose,
+        "geomgan_pose": k_geo_p,
+        "aegan_pose_paper": k_pose,
+        "geomgan_pose_paper": k_geo_p,
+    }
+
+    def train(job):
+        # the paper-recipe runs use the same key (initialisation, batches) as the presets' runs
+        data, val = (x_train, x_val) if job.endswith("shape") else (p_train, p_val)
+        kw = dict(key=train_keys[job], config=cfg(job), validation=val, checkpoint_dir=ckpt / job,
+                  progress=progress)  # fmt: skip
+        (ckpt / job).mkdir(exist_ok=True)
+        if job == "aegan_shape":
+            return dspp.train_shape_prior(data, **kw)
+        if job.startswith("aegan"):
+            return dspp.train_pose_prior(data, **kw)
+        return dspp.train_geometry_gan(data, kind="shape" if job.endswith("shape") else "pose",
+                                       **kw)  # fmt: skip
+
+    jobs = [(job, lambda job=job: train(job)) for job, _, _ in JOBS]
     for name, job in jobs:
         t = time.perf_counter()
         sol = job()
@@ -182,6 +219,11 @@ def run(args) -> dict:
         tail = max(1, log.n_steps // 10)
         metrics[f"final_d_loss_{name}"] = float(np.mean(log.d_loss[-tail:]))
         metrics[f"final_g_loss_{name}"] = float(np.mean(log.g_loss[-tail:]))
+        metrics[f"best_step_{name}"] = int(sol.stats["best_step"])
+        metrics[f"monitor_step_{name}"] = log.monitor_step.astype(int).tolist()
+        metrics[f"monitor_1nna_{name}"] = log.monitor_one_nna.tolist()
+        metrics[f"monitor_diversity_{name}"] = log.monitor_diversity.tolist()
+        metrics[f"monitor_diversity_ref_{name}"] = float(log.monitor_diversity_ref[-1])
         bp_path = out_dir / f"{name}.dspp"
         dspp.save_prior(bp_path, models[name])
         dspp.plot_train_log(log, out_dir / f"loss_{name}.png", title=name.replace("_", " "))
@@ -189,7 +231,7 @@ def run(args) -> dict:
 
     # ---------------------------------------------------------------- baselines + samples
     d = models["aegan_shape"].latent_dim
-    keys = jr.split(k_eval, 12)
+    keys = jr.split(k_eval, 16)
     samples = {"shape": {}, "pose": {}}
     train_refs, pca_fits = {}, {}
     for i, (domain, xtr) in enumerate((("shape", x_train), ("pose", p_train))):
@@ -202,8 +244,11 @@ def run(args) -> dict:
                 ("pca3sigma", "pm3sigma"), ("pcauniform", "uniform3sigma"))}  # fmt: skip
         pca_fits[domain] = pca
         gens = {"aegan": models[f"aegan_{domain}"], "geomgan": models[f"geomgan_{domain}"], **pcas}
+        if domain == "pose":
+            gens.update(aegan_paper=models["aegan_pose_paper"],
+                        geomgan_paper=models["geomgan_pose_paper"])  # fmt: skip
         for j, (m, model) in enumerate(gens.items()):
-            samples[domain][m] = np.asarray(dspp.sample(model, n_eval, key=keys[6 * i + j]))
+            samples[domain][m] = np.asarray(dspp.sample(model, n_eval, key=keys[8 * i + j]))
         # Real training items as a "generator" (reference row); disjoint from the items that the
         # specificity is measured against.
         perm = rng.permutation(xtr.shape[0])
@@ -263,6 +308,8 @@ def run(args) -> dict:
                            antialias=1)  # fmt: skip
     bp.save_png(out_dir / "shape_samples.png", img)
     body = bp.load_default_body("cmu_mb")
+    show = (*show, "aegan_paper")
+    labels = [f"{m} {i + 1}" if m != "train" else f"real {i + 1}" for m in show for i in range(nr)]
     poses = np.concatenate([samples["pose"][m][:nr] for m in show])
     bp.render_poses(body, poses, out_dir / "pose_samples.png", labels=labels, ncols=nr,
                       cell_size=(200, 130))  # fmt: skip
@@ -270,7 +317,7 @@ def run(args) -> dict:
 
     timings["total_s"] = time.perf_counter() - t_start
     metrics["timings"] = timings
-    metrics["config"] = {k: cfg(k).to_dict() for k in S["steps"]}
+    metrics["config"] = {job: cfg(job).to_dict() for job, _, _ in JOBS}
     bp.atomic_write_json(out_dir / "metrics.json", metrics)
     _log(f"done in {timings['total_s']:.0f} s -> {out_dir / 'metrics.json'}")
     return metrics
@@ -291,7 +338,9 @@ def main(argv=None) -> int:
         ap.error(f"--mocap: no such directory {args.mocap}")
     metrics = run(args)
     keys = ("shape_1nna_aegan", "shape_1nna_geomgan", "shape_1nna_pca", "pose_1nna_aegan",
-            "pose_1nna_geomgan", "pose_1nna_pca", "pose_joint_limit_violation_aegan")  # fmt: skip
+            "pose_1nna_aegan_paper", "pose_1nna_geomgan", "pose_1nna_geomgan_paper",
+            "pose_1nna_pca", "pose_diversity_aegan", "pose_diversity_aegan_paper",
+            "pose_diversity_ref", "pose_joint_limit_violation_aegan")  # fmt: skip
     for k in keys:
         print(f"{k}: {metrics[k]:.3f}")
     return 0

@@ -43,8 +43,18 @@ def test_dspp_experiment_tiny(tmp_path):
     assert 5.0 < m["shape_diversity_ref"] < 500.0 and 1.0 < m["pose_diversity_ref"] < 90.0
     # the +-3 sigma PCA corners are further from real bodies than Gaussian PCA samples
     assert m["shape_mmd_pca3sigma"] > m["shape_mmd_pca"]
+    # the paper's recipe is trained and measured next to the presets (poses)
+    for meth in ("aegan_paper", "geomgan_paper"):
+        assert 0.0 <= m[f"pose_1nna_{meth}"] <= 1.0 and m[f"pose_diversity_{meth}"] >= 0.0
+    assert m["config"]["aegan_pose"]["disc_input_gain"] == 20.0
+    assert m["config"]["aegan_pose_paper"]["disc_input_gain"] == 1.0
+    # the collapse monitor ran on the validation split and chose a monitored cycle
+    for job in ("aegan_shape", "aegan_pose", "geomgan_pose", "aegan_pose_paper"):
+        assert m[f"best_step_{job}"] in m[f"monitor_step_{job}"]
+        assert all(0.0 <= v <= 1.0 for v in m[f"monitor_1nna_{job}"])
+    assert m["pose_n_val"] > 0 and m["shape_n_val"] > 0
     for name in ("loss_aegan_shape", "loss_geomgan_shape", "loss_aegan_pose", "loss_geomgan_pose",
-                 "shape_samples", "pose_samples"):  # fmt: skip
+                 "loss_aegan_pose_paper", "shape_samples", "pose_samples"):  # fmt: skip
         png = out / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
     assert (out / "aegan_shape.dspp").exists() and (out / "checkpoints").is_dir()
