@@ -198,7 +198,8 @@ def _model_scans(tmpl, model, coeffs, poses, key):
 
 
 # The experiment's fit settings (`experiments/sscape_depth.py` FIT): one compile for both tests.
-FAST = DepthFitConfig(fit=FitConfig(landmark_steps=30), max_rounds=4, pose_steps=8, shape_steps=8)
+FAST = DepthFitConfig(fit=FitConfig(landmark_steps=30, shape_prior=1.0), max_rounds=4, pose_steps=8,
+                      shape_steps=8)  # fmt: skip
 
 
 # ~70 s on an idle 2-core machine (fitter compile); kept in the default suite so the depth

@@ -444,10 +444,10 @@ def test_anisotropic_energy_normal_equations_and_preconditioner(getkey):
                                atol=1e-9)  # fmt: skip
 
 
-def test_truthful_preset_does_not_slide(setup):
+def test_anchored_preset_does_not_slide(setup):
     """From a start that is right along the surface and off across it (the truth pushed 4 mm along
     its normals), the paper's NRD fits the scan and slides vertices along the surface; the
-    "truthful" preset (point-to-plane + tangent-motion penalty + full landmarks) fits the scan and
+    "anchored" preset (point-to-plane + tangent-motion penalty + full landmarks) fits the scan and
     keeps the true correspondence: its true error falls below the start's."""
     tmpl, truth, scan, _, _ = setup
     vn = np.asarray(bp.vertex_normals(jnp.asarray(truth), tmpl.faces))
@@ -456,7 +456,7 @@ def test_truthful_preset_does_not_slide(setup):
     body = ~np.asarray(tmpl.hand_mask)
     e0 = _gt_mm(init, truth)[body].mean()
     paper = _nrd.nrd(init, scan, tmpl, config=CFG)
-    good = _nrd.nrd(init, scan, tmpl, config=_nrd.NRDConfig.preset("truthful", n_patches=16))
+    good = _nrd.nrd(init, scan, tmpl, config=_nrd.NRDConfig.preset("anchored", n_patches=16))
     e_paper = _gt_mm(paper.value.vertices, truth)[body].mean()
     e_good = _gt_mm(good.value.vertices, truth)[body].mean()
     assert good.result == bp.RESULTS.successful
