@@ -24,7 +24,8 @@ against them (1-NNA, diversity). The pose systems return the monitored model clo
 (`select="best"`); the shape systems return their last model (`select="last"`): they do not
 collapse, their auto-encoder keeps improving (8,000 cycles are not enough), and in the first full
 run the best-by-validation shape model (cycle 3,000 of 8,000; 1-NNA differences of ~0.03 between
-checks, the noise of 256 samples) reconstructed at 12.6 mm instead of 8.2. Keys `monitor_*_<job>` and `best_step_<job>`; the loss plots show it.
+checks, the noise of 256 samples) reconstructed at 12.6 mm instead of 8.2. Keys
+`monitor_*_<job>` and `best_step_<job>`; the loss plots show it.
 
 Metrics (H-metrics' `bodyprior.generative_metrics`): MMD, COV, 1-NNA (0.5 ideal), specificity (mean
 distance to the nearest training item), diversity (average pairwise distance); shapes with the mean
