@@ -156,6 +156,15 @@ def main(argv=None):
         "anny's phenotype sampler (a mismatched data set, as the paper's MPI space)",
     )  # fmt: skip
     ap.add_argument("--bootstrap-only", action="store_true", help="stop after bootstrapping")
+    ap.add_argument(
+        "--nrd",
+        choices=("anchored", "paper"),
+        default="anchored",
+        help="NRD preset of the S-SCAPE + NRD registrations (NRDConfig.preset)",
+    )
+    ap.add_argument("--landmark-gate", type=float, default=1.1,
+                    help="calibrate the gate's landmark test at this factor over the references "
+                         "largest landmark RMS (0 = off)")  # fmt: skip
     args = ap.parse_args(argv)
     size = SIZES["quick" if args.quick else "full"]
     out = args.out
@@ -199,7 +208,8 @@ def main(argv=None):
 
     # ---- gate calibration: the test bodies' ground-truth meshes are perfect registrations of their
     # scans; they set the thresholds only (the test scans are never used for learning).
-    gate = sscape.calibrate_gate(gt_test, test_scans, tmpl)
+    gate = sscape.calibrate_gate(gt_test, test_scans, tmpl,
+                                 landmark_factor=args.landmark_gate or None)  # fmt: skip
     gcal = sscape.registration_gate(gt_boot, boot_scans, tmpl, config=gate)
     metrics["gate"] = {
         "config": dataclasses.asdict(gate),
@@ -229,9 +239,11 @@ def main(argv=None):
     # The registration experiment's settings: its fit priors (landmark term, pose prior) and NRD
     # without humanshape's head rule (the simulated heads are real; see docs/results_sscape.md).
     fit_config = FitConfig(max_passes=size["fit_passes"], **FIT_PRIORS)
-    nrd_config = registration.NRDConfig(head_rule=False)
+    nrd_config = registration.NRDConfig.preset(args.nrd, head_rule=False)
     metrics["registration_config"] = {"fit": {"max_passes": size["fit_passes"], **FIT_PRIORS},
-                                      "nrd": {"head_rule": False}}  # fmt: skip
+                                      "nrd": {"preset": args.nrd, "head_rule": False,
+                                              "config": repr(nrd_config)},
+                                      "landmark_gate_factor": args.landmark_gate}  # fmt: skip
 
     def register(model, s):
         return sscape.register_sscape_nrd(
@@ -283,6 +295,9 @@ def main(argv=None):
             "gt_error_mm_mean": float(ge.mean()),
             "gt_frac_below_10mm": float((ge <= 10.0).mean()),
             "gate_fraction_mean": float(p.gate.fraction.mean()),
+            "gate_landmark_rms_mm_mean": float(np.nanmean(p.gate.landmark_rms_mm)),
+            "accepted_gt_error_mm_mean": float(ge[p.gate.accepted].mean())
+            if p.n_accepted else float("nan"),
             "space_components": list(ms),
             "space_generalization_test_gt_mm": _mm(gen),
             "space_specificity_vs_last_pass_mm": _mm(spec.mean),

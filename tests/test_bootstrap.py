@@ -141,3 +141,33 @@ def test_calibrate_gate_from_reference_registrations(toy):
     assert np.all(registration_gate(good, _take(scans, 4), tmpl, config=cfg).accepted)
     bad = bodies[:4] + np.array([0.012, 0.0, 0.0])  # across the surface
     assert not np.any(registration_gate(bad, _take(scans, 4), tmpl, config=cfg).accepted)
+
+
+def test_landmark_gate_sees_sliding(toy):
+    """Registrations turned 8 degrees about the tube's axis lie on (nearly) the same surface, so
+    the fitting-error tests pass them, but their vertices slid by ~1.4 cm: the landmark test
+    rejects them, and calibration sets its threshold from the references."""
+    from bodyprior.sscape import calibrate_gate
+
+    _, tmpl, bodies, scans = toy
+    sc = _take(scans, 4)
+    c, s = np.cos(np.radians(8.0)), np.sin(np.radians(8.0))
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    centre = bodies[:4].mean(1, keepdims=True) * np.array([1.0, 1.0, 0.0])
+    slid = (bodies[:4] - centre) @ rot.T + centre
+    plain = registration_gate(slid, sc, tmpl)
+    assert np.all(plain.accepted) and np.all(plain.landmark_rms_mm > 8.0), plain.landmark_rms_mm
+    gated = registration_gate(slid, sc, tmpl, config=GateConfig(max_landmark_rms_mm=5.0))
+    assert not np.any(gated.accepted)
+    good = registration_gate(bodies[:4], sc, tmpl, config=GateConfig(max_landmark_rms_mm=5.0))
+    assert np.all(good.accepted) and np.all(good.landmark_rms_mm < 1e-6)
+    rng = np.random.default_rng(5)
+    refs = bodies[:4] + 0.002 * rng.standard_normal(bodies[:4].shape)
+    g_ref = registration_gate(refs, sc, tmpl)
+    cfg = calibrate_gate(refs, sc, tmpl, landmark_factor=1.2)
+    assert cfg.max_landmark_rms_mm == pytest.approx(1.2 * g_ref.landmark_rms_mm.max())
+    assert calibrate_gate(refs, sc, tmpl).max_landmark_rms_mm == float("inf")  # off by default
+    with pytest.raises(ValueError, match="max_landmark_rms_mm"):
+        GateConfig(max_landmark_rms_mm=0.0)
+    with pytest.raises(ValueError, match="landmark_factor"):
+        calibrate_gate(refs, sc, tmpl, landmark_factor=-1.0)

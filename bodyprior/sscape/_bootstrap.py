@@ -17,7 +17,12 @@ per body part, ignoring the hands (the paper does not register them):
    `GateConfig.parts`: head/neck, torso, and each upper arm, forearm, thigh, shank, foot), that
    fraction is at least `min_part_fraction`, so a misfit arm or leg cannot hide in a good average;
 3. the 99th percentile of the valid errors is at most `max_error_mm` (a maximum-error bound that is
-   robust to the few vertices at scan outliers or hole rims).
+   robust to the few vertices at scan outliers or hole rims);
+4. (off by default) the RMS distance of the registration's landmark vertices to the scan's
+   landmarks is at most `max_landmark_rms_mm`. The fitting error cannot see vertices sliding
+   along the surface; the landmarks can, though only through their placement noise (7.5 mm per
+   coordinate in the simulated scans: RMS ~13 mm for a perfect registration, so only slides of
+   several millimetres show).
 
 The paper's error is a vertex-to-nearest-*point* distance, so even a perfect registration has
 errors of the order of the scan's point spacing, and holes (armpits, crotch, soles, top of the
@@ -80,7 +85,8 @@ class GateConfig:
     """Thresholds of [`bodyprior.sscape.registration_gate`][] (see the module docstring).
 
     **Fields:** `threshold_mm` (10), `min_fraction` (0.85), `min_part_fraction` (0.6),
-    `max_error_mm` (25), `max_dist` (0.05 m) and `max_angle_deg` (60) of the fitting error.
+    `max_error_mm` (25), `max_dist` (0.05 m) and `max_angle_deg` (60) of the fitting error;
+    `max_landmark_rms_mm` (inf = off) of the landmark test.
     """
 
     threshold_mm: float = 10.0
@@ -89,6 +95,7 @@ class GateConfig:
     max_error_mm: float = 25.0
     max_dist: float = 0.05
     max_angle_deg: float = 60.0
+    max_landmark_rms_mm: float = float("inf")
 
     def __post_init__(self):
         for name in ("threshold_mm", "max_error_mm", "max_dist"):
@@ -99,6 +106,11 @@ class GateConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"`GateConfig.{name}` must lie in [0, 1], got {v!r}.")
+        if not self.max_landmark_rms_mm > 0:  # inf allowed (off); NaN and <= 0 refused
+            raise ValueError(
+                "`GateConfig.max_landmark_rms_mm` must be positive (inf = off), got "
+                f"{self.max_landmark_rms_mm!r}."
+            )
 
 
 class GateResult(NamedTuple):
@@ -115,6 +127,8 @@ class GateResult(NamedTuple):
     p99_mm: np.ndarray
     """`(N,)` 99th percentile of the valid non-hand errors, mm."""
     part_names: tuple[str, ...]
+    landmark_rms_mm: np.ndarray | None = None
+    """`(N,)` RMS distance of the landmark vertices to the scan's (present, non-hand) landmarks."""
 
 
 def body_parts(template: RegistrationTemplate) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -183,12 +197,32 @@ def registration_gate(
         [np.percentile(ei[oi & judged], 99) if np.any(oi & judged) else np.inf
          for ei, oi in zip(e, ok)]
     )  # fmt: skip
+    lm_rms = _landmark_rms(np.asarray(vertices, np.float64), scans, template)
     accepted = (
         (frac >= config.min_fraction)
         & (worst_frac >= config.min_part_fraction)
         & (p99 <= config.max_error_mm)
+        & (lm_rms <= config.max_landmark_rms_mm)
     )
-    return GateResult(accepted, frac, worst_frac, worst, p99, names)
+    return GateResult(accepted, frac, worst_frac, worst, p99, names, lm_rms)
+
+
+def _landmark_rms(vertices: np.ndarray, scans, template: RegistrationTemplate) -> np.ndarray:
+    """`(N,)` RMS distance (mm) of each registration's landmark vertices to its scan's landmarks
+    (matched by name; missing, unknown and hand landmarks left out; NaN without any)."""
+    where = {n: i for i, n in enumerate(template.landmark_names)}
+    lm_idx = np.asarray(template.landmark_index)
+    hand = np.asarray(template.hand_mask, bool)
+    names = scans.landmark_names
+    known = np.array([n in where for n in names], bool)
+    v_idx = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int64)
+    use = known & ~hand[v_idx]
+    mask = np.asarray(scans.landmark_mask, bool).reshape(vertices.shape[0], -1) & use[None]
+    lms = np.asarray(scans.landmarks, np.float64).reshape(vertices.shape[0], -1, 3)
+    d2 = np.sum((vertices[:, v_idx] - lms) ** 2, axis=-1)
+    n = mask.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, 1e3 * np.sqrt(np.sum(np.where(mask, d2, 0.0), 1) / n), np.nan)
 
 
 def calibrate_gate(
@@ -199,6 +233,7 @@ def calibrate_gate(
     fraction_margin: float = 0.05,
     part_margin: float = 0.15,
     error_factor: float = 1.5,
+    landmark_factor: float | None = None,
     base: GateConfig = GateConfig(),
 ) -> GateConfig:
     """Gate thresholds calibrated on registrations known to be good.
@@ -211,17 +246,24 @@ def calibrate_gate(
     registrations checked by eye): `min_fraction` = the lowest reference fraction within
     `threshold_mm` minus `fraction_margin`, `min_part_fraction` = the lowest reference part fraction
     minus `part_margin`, `max_error_mm` = the largest reference 99th percentile times
-    `error_factor`. Only the thresholds come from the references; the registrations being judged
-    are never compared with them.
+    `error_factor`, and with `landmark_factor` (e.g. 1.1) `max_landmark_rms_mm` = the largest
+    reference landmark RMS times it (None: `base`'s, off by default). Only the thresholds come
+    from the references; the registrations being judged are never compared with them.
 
     **Returns:** a [`bodyprior.sscape.GateConfig`][] (other fields from `base`).
     """
     g = registration_gate(reference_meshes, scans, template, config=base)
+    extra = {}
+    if landmark_factor is not None:
+        if not (np.isfinite(landmark_factor) and landmark_factor > 0):
+            raise ValueError(f"`landmark_factor` must be positive, got {landmark_factor!r}.")
+        extra["max_landmark_rms_mm"] = float(np.nanmax(g.landmark_rms_mm) * landmark_factor)
     return dataclasses.replace(
         base,
         min_fraction=float(np.clip(g.fraction.min() - fraction_margin, 0.0, 1.0)),
         min_part_fraction=float(np.clip(g.worst_part_fraction.min() - part_margin, 0.0, 1.0)),
         max_error_mm=float(g.p99_mm.max() * error_factor),
+        **extra,
     )
 
 
@@ -252,6 +294,10 @@ def register_sscape_nrd(
     """S-SCAPE + NRD registration of a batch of scans: `fit_sscape_batch` with `model`, then `nrd`
     initialised from each fit (per scan, one jitted call each, compiled once).
 
+    `nrd_config=None` is `NRDConfig.preset("anchored")`, the refinement that keeps the S-SCAPE
+    fit's correspondence (the paper's schedule, `NRDConfig()`, lowers the distance to the scan and
+    raises the true error: docs/results_sscape.md).
+
     **Returns:** a `Registration` `(vertices, poses, similarities)`.
     """
     import jax
@@ -260,7 +306,7 @@ def register_sscape_nrd(
     from ._fit import FitConfig, fit_sscape_batch
 
     fit_config = FitConfig() if fit_config is None else fit_config
-    nrd_config = NRDConfig() if nrd_config is None else nrd_config
+    nrd_config = NRDConfig.preset("anchored") if nrd_config is None else nrd_config
     fits = fit_sscape_batch(
         model, scans, template, config=fit_config, progress=progress, throw=False
     ).value
