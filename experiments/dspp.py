@@ -70,7 +70,7 @@ SIZES = {
                             geomgan_pose=100000),
                  monitor=dict(aegan_shape=1000, geomgan_shape=500, aegan_pose=5000,
                               geomgan_pose=5000),
-                 batch=dict(aegan_shape=16, geomgan_shape=2, aegan_pose=16, geomgan_pose=16),
+                 batch=dict(aegan_shape=16, geomgan_shape=2, aegan_pose=64, geomgan_pose=16),
                  spc=dict(aegan_shape=500, geomgan_shape=500, aegan_pose=5000, geomgan_pose=5000)),
     "quick": dict(n_bodies=400, n_eval=64, n_train_ref=128, n_eval_pose=128,
                   n_train_ref_pose=256, render=4,
