@@ -97,3 +97,11 @@ def check_positive_int(value, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise ValueError(f"`{name}` must be a positive int, got {value!r}.")
     return int(value)
+
+
+def named_preset(cls, table: dict[str, dict], name: str, overrides: dict):
+    """`cls(**table[name], **overrides)` (overrides win), the `preset` classmethod of the config
+    classes; `ValueError` naming `name` and the choices for an unknown preset."""
+    if name not in table:
+        raise ValueError(f"`name` must be one of {sorted(table)}, got {name!r}.")
+    return cls(**{**table[name], **overrides})

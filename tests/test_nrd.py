@@ -190,21 +190,28 @@ def test_hands_are_data_free(setup):
     assert np.abs(g[hand]).max() == 0.0 and np.abs(g[~hand]).max() > 0
 
 
-def test_energy_gradient_and_normal_equations(getkey):
-    """On a tiny mesh: autodiff gradient = central differences = 2 (H X − R) of the assembled
-    normal equations (so the solver minimises exactly the stated energy)."""
+def _tiny_template(n_hand: int, n_head: int):
+    """A 5 x 4 tube as a one-bone registration template (landmarks at vertices 0 and 7; the first
+    `n_hand` vertices are hands, the last `n_head` head), for the normal-equation tests."""
     verts, faces = tube_mesh(5, 4, radius=0.1, height=0.3)
     V = verts.shape[0]
-    tmpl_like = bp.registration.RegistrationTemplate(
+    return verts, bp.registration.RegistrationTemplate(
         vertices=jnp.asarray(verts), topology=bp.Topology.from_faces(faces, V),
         vertex_map=jnp.arange(V), landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
-        hand_mask=jnp.zeros(V, bool).at[:3].set(True),
-        head_mask=jnp.zeros(V, bool).at[-5:].set(True),
+        hand_mask=jnp.zeros(V, bool).at[:n_hand].set(True),
+        head_mask=jnp.zeros(V, bool).at[V - n_head :].set(True),
         rig=bp.Rig(parents=(-1,), joint_names=("root",), skin_indices=jnp.zeros((V, 1), jnp.int32),
                    skin_weights=jnp.ones((V, 1)), regressor_indices=jnp.zeros((1, 1), jnp.int32),
                    regressor_weights=jnp.ones((1, 1))),
         regressor_max_error=0.0, landmark_names=("a", "b"),
     )  # fmt: skip
+
+
+def test_energy_gradient_and_normal_equations(getkey):
+    """On a tiny mesh: autodiff gradient = central differences = 2 (H X − R) of the assembled
+    normal equations (so the solver minimises exactly the stated energy)."""
+    verts, tmpl_like = _tiny_template(3, 5)
+    V = verts.shape[0]
     prep = _nrd._prepare(tmpl_like, 2)
     ph = jnp.concatenate([1000 * jnp.asarray(verts), jnp.ones((V, 1))], axis=1)
     rnd = _nrd._Round(
@@ -395,17 +402,8 @@ def test_bad_inputs(setup):
 def test_anisotropic_energy_normal_equations_and_preconditioner(getkey):
     """Point-to-plane data metrics and the tangent-motion term: autodiff gradient = 2 (H X − R),
     and the block-Jacobi part of the preconditioner inverts the 12 x 12 vertex blocks exactly."""
-    verts, faces = tube_mesh(5, 4, radius=0.1, height=0.3)
+    verts, tmpl_like = _tiny_template(0, 0)
     V = verts.shape[0]
-    tmpl_like = bp.registration.RegistrationTemplate(
-        vertices=jnp.asarray(verts), topology=bp.Topology.from_faces(faces, V),
-        vertex_map=jnp.arange(V), landmark_index=jnp.array([0, 7]), landmark_error=jnp.zeros(2),
-        hand_mask=jnp.zeros(V, bool), head_mask=jnp.zeros(V, bool),
-        rig=bp.Rig(parents=(-1,), joint_names=("root",), skin_indices=jnp.zeros((V, 1), jnp.int32),
-                   skin_weights=jnp.ones((V, 1)), regressor_indices=jnp.zeros((1, 1), jnp.int32),
-                   regressor_weights=jnp.ones((1, 1))),
-        regressor_max_error=0.0, landmark_names=("a", "b"),
-    )  # fmt: skip
     prep = _nrd._prepare(tmpl_like, 2)
     ph = jnp.concatenate([1000 * jnp.asarray(verts), jnp.ones((V, 1))], axis=1)
     n = jr.normal(getkey(), (V, 3))

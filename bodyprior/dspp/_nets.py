@@ -39,7 +39,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from .._validate import check_array, is_tracer
+from .._validate import check_array, is_tracer, named_preset
 
 
 class PReLU(eqx.Module):
@@ -313,9 +313,7 @@ class DSPPConfig:
             "pose": dict(disc_input_gain=20.0, generator_learning_rate=2e-4),
             "geometry_pose": dict(disc_input_gain=5.0),
         }
-        if name not in table:
-            raise ValueError(f"`name` must be one of {sorted(table)}, got {name!r}.")
-        return cls(**{**table[name], **overrides})
+        return named_preset(cls, table, name, overrides)
 
     def to_dict(self) -> dict:
         return {

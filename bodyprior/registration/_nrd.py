@@ -100,7 +100,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._linalg import pcg
 from .._solution import RESULTS, Solution, _check
-from .._validate import check_array
+from .._validate import check_array, named_preset
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
 from ._template import RegistrationTemplate
@@ -201,14 +201,7 @@ class NRDConfig(eqx.Module):
             "paper_cw": dict(constant_weights=True),
             "anchored": dict(point_to_plane=0.9, tangent_weight=1.0, max_dist_mm=10.0),
         }
-        if name not in table:
-            raise ValueError(f"`name` must be one of {sorted(table)}, got {name!r}.")
-        return cls(**{**table[name], **overrides})
-
-    @property
-    def anisotropic(self) -> bool:
-        """Whether the data term needs per-vertex 3x3 metrics (point-to-plane or tangent term)."""
-        return self.point_to_plane > 0 or self.tangent_weight > 0
+        return named_preset(cls, table, name, overrides)
 
     def __check_init__(self):
         positive = dict(

@@ -46,6 +46,7 @@ from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
 from ..registration._evaluate import fitting_error_batch
+from ..registration._nrd import _landmark_map
 from ..registration._template import RegistrationTemplate
 from ._learn import learn
 from ._model import SScapeModel
@@ -209,14 +210,9 @@ def registration_gate(
 
 def _landmark_rms(vertices: np.ndarray, scans, template: RegistrationTemplate) -> np.ndarray:
     """`(N,)` RMS distance (mm) of each registration's landmark vertices to its scan's landmarks
-    (matched by name; missing, unknown and hand landmarks left out; NaN without any)."""
-    where = {n: i for i, n in enumerate(template.landmark_names)}
-    lm_idx = np.asarray(template.landmark_index)
-    hand = np.asarray(template.hand_mask, bool)
-    names = scans.landmark_names
-    known = np.array([n in where for n in names], bool)
-    v_idx = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int64)
-    use = known & ~hand[v_idx]
+    (matched by name as NRD matches them; missing, unknown and hand landmarks left out; NaN
+    without any)."""
+    v_idx, use = (np.asarray(a) for a in _landmark_map(template, scans.landmark_names))
     mask = np.asarray(scans.landmark_mask, bool).reshape(vertices.shape[0], -1) & use[None]
     lms = np.asarray(scans.landmarks, np.float64).reshape(vertices.shape[0], -1, 3)
     d2 = np.sum((vertices[:, v_idx] - lms) ** 2, axis=-1)

@@ -16,6 +16,7 @@ from jaxtyping import Array, Float
 from .._geometry import vertex_normals
 from .._kinematics import Similarity
 from .._solution import RESULTS, Solution, _check
+from .._validate import named_preset
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
 from ..registration._template import RegistrationTemplate
@@ -66,8 +67,8 @@ class DepthFitConfig:
     deviation (humanshape and the paper: none, `DepthFitConfig.preset("paper")`). Two depth images
     see one side of the body each and 2,048 noisy points per view; without the prior more
     components fit the noise and the posture instead of the shape (measured on the NH space of
-    1,000 bodies, two subjects: rest-shape error 9.9 / 16.0 / 20.3 mm at K = 10 / 20 / 50 without,
-    9.9 / 9.8 / 9.6 mm with it; docs/results_sscape.md).
+    1,000 bodies, two subjects: rest-shape error 9.9 / 15.9 / 20.3 mm at K = 10 / 20 / 50 without,
+    9.8 / 9.8 / 9.5 mm with it; docs/results_sscape.md).
     """
 
     fit: FitConfig = FitConfig(shape_prior=1.0)
@@ -85,10 +86,7 @@ class DepthFitConfig:
         """A named configuration, with any field overridden by keyword: `"default"`
         (`DepthFitConfig()`, shape prior 1 mm²/σ²) or `"paper"` (`fit=FitConfig()`: no shape
         prior, as humanshape and the paper). An explicit `fit=` is used as given."""
-        table = {"default": {}, "paper": {"fit": FitConfig()}}
-        if name not in table:
-            raise ValueError(f"`name` must be one of {sorted(table)}, got {name!r}.")
-        return cls(**{**table[name], **overrides})
+        return named_preset(cls, {"default": {}, "paper": {"fit": FitConfig()}}, name, overrides)
 
     def __post_init__(self):
         if not isinstance(self.fit, FitConfig):
