@@ -56,7 +56,7 @@ def main(argv=None):
     from bodyprior.registration import ScannerConfig, simulate_scans
     from bodyprior.sscape import FitConfig, fit_sscape, fit_sscape_batch
 
-    cfg = FitConfig()
+    cfg = FitConfig.preset("humanshape")  # the configuration the recorded figures used
     tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(args.n_train, body=body, progress=False, key=jr.PRNGKey(args.seed))
@@ -72,7 +72,8 @@ def main(argv=None):
         body.landmark_index,
         body.landmark_names,
         ScannerConfig(n_points=args.n_points),
-        progress=False, key=jr.PRNGKey(args.seed + 2),
+        progress=False,
+        key=jr.PRNGKey(args.seed + 2),
     )
     truth = np.asarray(tmpl.restrict(pop1.vertices))
     hand = np.asarray(tmpl.hand_mask)

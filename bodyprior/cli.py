@@ -5,6 +5,17 @@
   mesh file, a `population.json` with their phenotypes, ages and sexes, and a shaded contact sheet
   PNG.
 - `bodyprior info`: prints what the embedded default-body asset holds.
+- `bodyprior register SCAN... --out DIR`: registers scans (PLY/OBJ + CAESAR `.lnd`) with the
+  shipped S-SCAPE space and the anchored NRD refinement; registered meshes, JSON reports, error
+  colour maps.
+- `bodyprior learn MESHES... --out MODEL.sscape`: an S-SCAPE space from meshes in correspondence,
+  with its compactness / generalization / specificity and a picture of its modes.
+- `bodyprior pose BVH --frame N --out DIR`: one mocap frame on the default body (mesh + PNG).
+- `bodyprior render MESH --out PNG`: a shaded picture of a mesh file.
+
+Every command keeps JAX's compiled programs in a persistent cache (`$BODYPRIOR_CACHE`, default
+`~/.cache/bodyprior/jax`; `--no-cache` turns it off), so a second run skips most compilation.
+Exit codes: 0 success, 1 a fit did not converge (results written), 2 bad input (one-line message).
 """
 
 from __future__ import annotations
@@ -61,7 +72,10 @@ def _cmd_sample(args) -> int:
     t0 = time.time()
     body = load_default_body("cmu_mb", local_changes=not args.no_local_changes)
     pop = sample_population(
-        args.n, body=body, scheme=args.scheme, pose_jitter_deg=args.jitter,
+        args.n,
+        body=body,
+        scheme=args.scheme,
+        pose_jitter_deg=args.jitter,
         key=jax.random.PRNGKey(args.seed),
     )
     verts = np.asarray(pop.vertices)
@@ -108,9 +122,139 @@ def _cmd_sample(args) -> int:
     return 0
 
 
+def cache_dir() -> str:
+    """The CLI's persistent JAX compilation cache directory: `$BODYPRIOR_CACHE`, else
+    `$XDG_CACHE_HOME/bodyprior/jax` or `~/.cache/bodyprior/jax`."""
+    env = os.environ.get("BODYPRIOR_CACHE")
+    if env:
+        return os.path.abspath(os.path.expanduser(env))
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "bodyprior", "jax")
+
+
+def enable_compilation_cache(path: str | None = None) -> str:
+    """Turns on JAX's persistent compilation cache at `path` (default [`cache_dir`][]): compiled
+    programs that took at least 0.5 s to compile are written there and reused by later processes
+    with the same JAX version, backend and program. The API does not do this by itself; call this
+    (or set `jax.config.update("jax_compilation_cache_dir", ...)`) at the top of a script.
+
+    **Returns:** the directory used.
+    """
+    import jax
+
+    path = cache_dir() if path is None else os.path.abspath(os.path.expanduser(path))
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def _job(name: str):
+    """The job `name` of `bodyprior._cli_jobs`, imported when it runs."""
+
+    def run(args) -> int:
+        from . import _cli_jobs
+
+        return getattr(_cli_jobs, name)(args)
+
+    return run
+
+
+def _add_jobs(sub) -> None:
+    from ._cli_jobs import REGISTER_PRESETS
+
+    r = sub.add_parser(
+        "register",
+        help="register scans (PLY/OBJ + .lnd) with the shipped S-SCAPE space and NRD refinement",
+        description="S-SCAPE fit with the shipped space (bodyprior.sscape.default_space), then the "
+        "anchored NRD refinement (bodyprior.sscape.register_sscape_nrd). Writes per scan "
+        "STEM.registered.ply (the template mesh in the scan frame, metres), STEM.json (fitting "
+        "error, coverage, landmark RMS, units) and STEM.error.png; report.json for all.",
+    )
+    r.add_argument("scans", nargs="+", help="scan files (.ply/.obj) or directories of them")
+    r.add_argument(
+        "--landmarks",
+        default=None,
+        help="CAESAR .lnd file of the (single) scan; default SCAN.lnd next to each scan",
+    )
+    r.add_argument("--out", required=True, help="output directory")
+    r.add_argument(
+        "--preset",
+        choices=tuple(REGISTER_PRESETS),
+        default="default",
+        help="default: measured best on simulated scans; caesar: + humanshape's head "
+        "rule (dummy heads); paper: humanshape's fit and the paper's NRD",
+    )
+    r.add_argument("--components", type=int, default=20, help="shape components (default 20)")
+    r.add_argument(
+        "--model", default=None, help="an .sscape space on the template (default: the shipped one)"
+    )
+    r.add_argument(
+        "--units",
+        choices=("auto", "m", "cm", "mm"),
+        default="auto",
+        help="scan units (default: detected from the body's size)",
+    )
+    r.add_argument(
+        "--points",
+        type=int,
+        default=19347,
+        help="random scan points used (humanshape: 19,347; 0 = all)",
+    )
+    r.add_argument("--max-passes", type=int, default=None, help="S-SCAPE pose/shape passes")
+    r.add_argument("--no-refine", action="store_true", help="S-SCAPE fit only, no NRD")
+    r.add_argument("--vmax-mm", type=float, default=20.0, help="top of the error colour map, mm")
+    r.add_argument("--json", action="store_true", help="print the report as JSON")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(func=_job("cmd_register"))
+
+    le = sub.add_parser("learn", help="learn an S-SCAPE space from meshes in correspondence")
+    le.add_argument("meshes", nargs="+", help="mesh files (.ply/.obj) or directories of them")
+    le.add_argument("--out", required=True, help="output model file (.sscape)")
+    le.add_argument("--components", type=int, default=20, help="components (default 20)")
+    le.add_argument("--samples", type=int, default=1000, help="specificity samples")
+    le.add_argument("--modes", type=int, default=3, help="components drawn at -3/0/+3 sd")
+    le.add_argument("--no-measures", action="store_true", help="skip generalization/specificity")
+    le.add_argument("--seed", type=int, default=0)
+    le.add_argument("--json", action="store_true", help="print the report as JSON")
+    le.set_defaults(func=_job("cmd_learn"))
+
+    po = sub.add_parser("pose", help="pose the default body from one BVH frame")
+    po.add_argument("bvh", help="a BVH file (CMU skeletons)")
+    po.add_argument("--frame", type=int, default=0, help="frame index (negative from the end)")
+    po.add_argument(
+        "--phenotype",
+        action="append",
+        metavar="NAME=VALUE",
+        help="phenotype entry, e.g. --phenotype gender=1 --phenotype age=0.7",
+    )
+    po.add_argument("--no-root-motion", action="store_true", help="drop the root translation")
+    po.add_argument("--format", choices=("ply", "obj"), default="ply")
+    po.add_argument("--size", type=int, default=512, help="image height in pixels")
+    po.add_argument("--out", required=True, help="output directory")
+    po.set_defaults(func=_job("cmd_pose"))
+
+    re_ = sub.add_parser("render", help="render a mesh file to a PNG")
+    re_.add_argument("mesh", help="a .ply or .obj mesh")
+    re_.add_argument("--out", required=True, help="output PNG")
+    re_.add_argument(
+        "--view",
+        action="append",
+        default=None,
+        choices=("front", "back", "side", "left", "right", "top"),
+        help="view(s), side by side (default front and side)",
+    )
+    re_.add_argument("--size", type=int, default=512, help="image height in pixels")
+    re_.set_defaults(func=_job("cmd_render"))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="bodyprior", description="Statistical human body models in JAX."
+    )
+    ap.add_argument(
+        "--no-cache", action="store_true", help="do not use the persistent JAX compilation cache"
     )
     sub = ap.add_subparsers(dest="cmd", required=True)
     s = sub.add_parser("sample", help="sample adult bodies from the default body's phenotype space")
@@ -128,8 +272,17 @@ def main(argv=None) -> int:
     i = sub.add_parser("info", help="describe the embedded default-body asset")
     i.add_argument("-v", "--verbose", action="store_true")
     i.set_defaults(func=_cmd_info)
+    _add_jobs(sub)
     args = ap.parse_args(argv)
-    return args.func(args)
+    if getattr(args, "view", 0) is None:
+        args.view = ["front", "side"]
+    if not args.no_cache:
+        enable_compilation_cache()
+    try:
+        return args.func(args)
+    except ValueError as e:
+        print(f"bodyprior {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -194,12 +194,18 @@ class NRDConfig(eqx.Module):
           other surfaces). Chosen on 8 simulated scans of a tuning seed (docs/results_sscape.md):
           true error 7.09 mm (S-SCAPE fit) -> 8.25 (paper) / 6.18 (anchored). Keeping the
           landmarks at full weight (`landmark_decay=1`) changed nothing there (6.42 both). Not
-          meant for NRD from the static template: the tangent term anchors to the start.
+          meant for NRD from the static template: the tangent term anchors to the start. Without
+          humanshape's head rule (`head_rule=False`; the scans have real heads); pass
+          `head_rule=True` for CAESAR scans, whose heads are dummies.
+        - `"caesar"`: `"anchored"` with the head rule, for CAESAR-like scans.
         """
         table = {
             "paper": {},
             "paper_cw": dict(constant_weights=True),
-            "anchored": dict(point_to_plane=0.9, tangent_weight=1.0, max_dist_mm=10.0),
+            "anchored": dict(
+                point_to_plane=0.9, tangent_weight=1.0, max_dist_mm=10.0, head_rule=False
+            ),
+            "caesar": dict(point_to_plane=0.9, tangent_weight=1.0, max_dist_mm=10.0),
         }
         return named_preset(cls, table, name, overrides)
 

@@ -33,6 +33,12 @@ from ._bootstrap import (
 from ._bootstrap import (
     registration_gate as registration_gate,
 )
+from ._default import (
+    default_space as default_space,
+)
+from ._default import (
+    space_path as space_path,
+)
 from ._depth import (
     DepthFit as DepthFit,
 )

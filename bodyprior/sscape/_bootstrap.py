@@ -276,6 +276,12 @@ class Registration(NamedTuple):
     """`(N, J, 3)` axis-angle poses of the S-SCAPE fits (for NH posture normalization)."""
     similarities: object
     """Batched `Similarity` of the S-SCAPE fits (model frame -> scan frame)."""
+    fit_vertices: np.ndarray | None = None
+    """`(N, V, 3)` the S-SCAPE fits before the refinement, metres, scan frame."""
+    coeffs: np.ndarray | None = None
+    """`(N, K)` shape coefficients of the S-SCAPE fits, standard deviations."""
+    successful: np.ndarray | None = None
+    """`(N,)` bool: both the S-SCAPE fit and NRD returned `RESULTS.successful`."""
 
 
 def register_sscape_nrd(
@@ -303,9 +309,11 @@ def register_sscape_nrd(
 
     fit_config = FitConfig() if fit_config is None else fit_config
     nrd_config = NRDConfig.preset("anchored") if nrd_config is None else nrd_config
-    fits = fit_sscape_batch(
+    sol = fit_sscape_batch(
         model, scans, template, config=fit_config, progress=progress, throw=False
-    ).value
+    )
+    fits = sol.value
+    ok = ~np.asarray(sol.failed).reshape(-1)
     n = scans.points.shape[0]
     out = []
     prep = prepare_nrd(template, n_patches=nrd_config.n_patches)  # once for all scans
@@ -313,7 +321,11 @@ def register_sscape_nrd(
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
         r = nrd(jnp.asarray(fits.vertices[i]), scan_i, prep, config=nrd_config, throw=False)
         out.append(np.asarray(r.value.vertices))
-    return Registration(np.stack(out), np.asarray(fits.pose), fits.similarity)
+        ok[i] &= not bool(r.failed)
+    return Registration(
+        np.stack(out), np.asarray(fits.pose), fits.similarity, np.asarray(fits.vertices),
+        np.asarray(fits.coeffs), ok,
+    )  # fmt: skip
 
 
 class BootstrapPass(NamedTuple):

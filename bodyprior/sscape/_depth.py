@@ -71,7 +71,7 @@ class DepthFitConfig:
     9.8 / 9.8 / 9.5 mm with it; docs/results_sscape.md).
     """
 
-    fit: FitConfig = FitConfig(shape_prior=1.0)
+    fit: FitConfig = FitConfig.preset("humanshape", shape_prior=1.0)
     max_rounds: int = 8
     rtol: float = 1e-3
     atol_mm: float = 1e-3
@@ -84,9 +84,11 @@ class DepthFitConfig:
     @classmethod
     def preset(cls, name: str, **overrides) -> DepthFitConfig:
         """A named configuration, with any field overridden by keyword: `"default"`
-        (`DepthFitConfig()`, shape prior 1 mm²/σ²) or `"paper"` (`fit=FitConfig()`: no shape
-        prior, as humanshape and the paper). An explicit `fit=` is used as given."""
-        return named_preset(cls, {"default": {}, "paper": {"fit": FitConfig()}}, name, overrides)
+        (`DepthFitConfig()`, shape prior 1 mm²/σ²) or `"paper"`
+        (`fit=FitConfig.preset("humanshape")`: humanshape's fit, no shape prior, as the paper). An explicit `fit=` is used as given."""
+        return named_preset(
+            cls, {"default": {}, "paper": {"fit": FitConfig.preset("humanshape")}}, name, overrides
+        )
 
     def __post_init__(self):
         if not isinstance(self.fit, FitConfig):

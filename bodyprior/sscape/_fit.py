@@ -67,7 +67,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
 from .._solution import RESULTS, Solution, _check
-from .._validate import check_array, is_tracer
+from .._validate import check_array, is_tracer, named_preset
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
 from ..registration._template import RegistrationTemplate
@@ -108,13 +108,15 @@ class FitConfig:
       `a (n_q . (x - q))^2 + (1 - a) |x - q|^2` (0.9; 0 = humanshape's point-to-point).
     - `coeff_bound`: shape coefficients are bounded to `[-b, b]` standard deviations (3).
     - `fit_scale`: refine the global scale (humanshape does); else keep the landmark similarity's.
-    - `pose_prior`: weight of `|theta_j|^2` per non-root joint, mm^2 per rad^2 (1.0).
+    - `pose_prior`: weight of `|theta_j|^2` per non-root joint, mm^2 per rad^2 (100; humanshape's
+      code uses 1).
     - `shape_prior`: weight of `|c|^2`, mm^2 per squared standard deviation (0.0 = humanshape).
     - `landmark_weight`: weight of the mean squared landmark distance in the surface passes
-      (0.0 = humanshape: landmarks are used only for the similarity and the first pose). On the
-      simulated laser scans, `landmark_weight=0.3` with `pose_prior=100` cut the fit's mean
+      (0.3; 0.0 = humanshape: landmarks are used only for the similarity and the first pose). On
+      the simulated laser scans, `landmark_weight=0.3` with `pose_prior=100` cut the fit's mean
       true-correspondence error from 10.4 to 7.1 mm (vertices slide along featureless limbs
-      without them; `docs/results_sscape.md`); the defaults stay humanshape's.
+      without them; `docs/results_sscape.md`), so these are the defaults;
+      `FitConfig.preset("humanshape")` restores humanshape's 0 and 1.
     - `frozen_joints`: names of joints kept at their initial rotation; `None` = every joint whose
       name contains "Hand", "Thumb" or "Finger".
     - `landmark_steps`, `pose_steps`, `shape_steps`: Levenberg-Marquardt step limits per solve.
@@ -132,9 +134,9 @@ class FitConfig:
     point_to_plane: float = 0.9
     coeff_bound: float = 3.0
     fit_scale: bool = True
-    pose_prior: float = 1.0
+    pose_prior: float = 100.0
     shape_prior: float = 0.0
-    landmark_weight: float = 0.0
+    landmark_weight: float = 0.3
     frozen_joints: tuple[str, ...] | None = None
     landmark_steps: int = 100
     pose_steps: int = 20
@@ -142,6 +144,18 @@ class FitConfig:
     solver_rtol: float = 1e-6
     solver_atol: float = 1e-6
     exclude_hands: bool = True
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> FitConfig:
+        """A named configuration, with any field overridden by keyword.
+
+        - `"default"`: `FitConfig()`, the measured best on simulated laser scans (landmark term 0.3,
+          pose prior 100; `docs/results_sscape.md`).
+        - `"humanshape"`: humanshape's fit (`landmark_weight=0`, `pose_prior=1`): landmarks only
+          for the similarity and the first pose.
+        """
+        table = {"default": {}, "humanshape": dict(landmark_weight=0.0, pose_prior=1.0)}
+        return named_preset(cls, table, name, overrides)
 
     def __post_init__(self):
         for name in ("max_passes", "landmark_steps", "pose_steps", "shape_steps"):

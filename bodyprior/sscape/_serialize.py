@@ -19,6 +19,7 @@ never touches the network.
 from __future__ import annotations
 
 import io
+import json
 import os
 
 import equinox as eqx
@@ -50,16 +51,25 @@ def _leaves_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
-def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
+def save_model(path: str | os.PathLike, model: SScapeModel, *, info: dict | None = None) -> None:
     """Writes `model` to `path` atomically in the `bodyprior.sscape` v1 format.
 
     **Arguments:**
 
     - `path`: destination file (conventionally `*.sscape`); its directory must exist.
     - `model`: an [`bodyprior.sscape.SScapeModel`][] with concrete (not traced) arrays.
+    - `info`: optional JSON-serialisable provenance (how the model was made), stored in the
+      metadata under `"info"` and returned by `load_model(path, return_info=True)`.
     """
     if not isinstance(model, SScapeModel):
         raise ValueError(f"`model` must be an SScapeModel, got {type(model).__name__}.")
+    if info is not None:
+        if not isinstance(info, dict):
+            raise ValueError(f"`info` must be a dict or None, got {type(info).__name__}.")
+        try:
+            json.dumps(info)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"`info` must be JSON-serialisable: {e}") from None
     arrays = {name: np.asarray(getattr(model, name)) for name in _LEAVES}
     payload = _leaves_bytes(arrays)
     metadata = {
@@ -69,11 +79,16 @@ def save_model(path: str | os.PathLike, model: SScapeModel) -> None:
         "joint_names": list(model.joint_names),
         "leaves": {k: {"shape": list(a.shape), "dtype": a.dtype.str} for k, a in arrays.items()},
     }
+    if info is not None:
+        metadata["info"] = info
     _write_zip(path, metadata, {"leaves.eqx": payload})
 
 
-def load_model(path: str | os.PathLike) -> SScapeModel:
+def load_model(path: str | os.PathLike, *, return_info: bool = False):
     """Reads a model written by [`bodyprior.sscape.save_model`][], validating it.
+
+    **Returns:** the [`bodyprior.sscape.SScapeModel`][], or `(model, info)` with
+    `return_info=True` (`info`: the dict given to `save_model`, `{}` if none).
 
     **Raises:** `ValueError` if the file is missing, not a `bodyprior.sscape` file, of another
     version, or corrupted (checksum, shapes or dtypes disagree with the metadata).
@@ -110,6 +125,12 @@ def load_model(path: str | os.PathLike) -> SScapeModel:
             regressor_indices=arrays.pop("joint_regressor_indices"),
             regressor_weights=arrays.pop("joint_regressor_weights"),
         )
-        return SScapeModel(rig=rig, **arrays)
+        model = SScapeModel(rig=rig, **arrays)
     except (KeyError, TypeError) as e:
         raise ValueError(f"{path!r}: invalid metadata: {e}") from e
+    if not return_info:
+        return model
+    info = meta.get("info", {})
+    if not isinstance(info, dict):
+        raise ValueError(f"{path!r}: metadata 'info' must be an object, got {type(info).__name__}.")
+    return model, info
