@@ -92,7 +92,7 @@ def cmd_register(args) -> int:
                          "SCAN.lnd next to each scan).")  # fmt: skip
     if args.components < 1:
         raise ValueError(f"`--components` must be >= 1, got {args.components}.")
-    if args.points is not None and args.points < 100:
+    if args.points is not None and 0 < args.points < 100:
         raise ValueError(f"`--points` must be >= 100 (0 = all), got {args.points}.")
     fit_name, nrd_name = REGISTER_PRESETS[args.preset]
     fit_over = {} if args.max_passes is None else dict(max_passes=args.max_passes)
@@ -174,7 +174,7 @@ def cmd_register(args) -> int:
                 np.asarray(fe_fit.error_mm), np.asarray(fe_fit.valid)
             ),
             landmark_rms_mm=round(float(np.sqrt(np.mean(lm_d**2)) * 1e3), 3),
-            similarity_scale=round(float(np.asarray(reg.similarities.scale)[i]), 5),
+            similarity_scale=round(float(np.exp(np.asarray(reg.similarities.log_scale)[i])), 5),
             shape_coeffs=[round(float(c), 5) for c in reg.coeffs[i]],
         )
         atomic_write_json(os.path.join(args.out, f"{stem}.json"), rep)

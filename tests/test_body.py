@@ -288,7 +288,19 @@ def test_cli(tmp_path, capsys):
     from bodyprior.cli import main
 
     assert (
-        main(["sample", "--n", "3", "--seed", "1", "--out", str(tmp_path), "--no-local-changes"])
+        main(
+            [
+                "--no-cache",
+                "sample",
+                "--n",
+                "3",
+                "--seed",
+                "1",
+                "--out",
+                str(tmp_path),
+                "--no-local-changes",
+            ]
+        )
         == 0
     )
     files = sorted(os.listdir(tmp_path))
@@ -302,7 +314,7 @@ def test_cli(tmp_path, capsys):
 
     img = matplotlib.image.imread(str(tmp_path / "contact_sheet.png"))
     assert img.ndim == 3 and img.shape[0] > 100
-    assert main(["info"]) == 0
+    assert main(["--no-cache", "info"]) == 0
     assert "vertices" in capsys.readouterr().out
 
 

@@ -85,7 +85,8 @@ class DepthFitConfig:
     def preset(cls, name: str, **overrides) -> DepthFitConfig:
         """A named configuration, with any field overridden by keyword: `"default"`
         (`DepthFitConfig()`, shape prior 1 mm²/σ²) or `"paper"`
-        (`fit=FitConfig.preset("humanshape")`: humanshape's fit, no shape prior, as the paper). An explicit `fit=` is used as given."""
+        (`fit=FitConfig.preset("humanshape")`: humanshape's fit, no shape prior, as the paper).
+        An explicit `fit=` is used as given."""
         return named_preset(
             cls, {"default": {}, "paper": {"fit": FitConfig.preset("humanshape")}}, name, overrides
         )
