@@ -85,6 +85,15 @@ from ._mocap import (
     rig_pose as rig_pose,
     split_by_clip as split_by_clip,
 )
+from ._measure import (
+    BODY_DENSITY as BODY_DENSITY,
+    Measurements as Measurements,
+    age_to_years as age_to_years,
+    measure as measure,
+    mesh_measurements as mesh_measurements,
+    phenotypes_from_measurements as phenotypes_from_measurements,
+    years_to_age as years_to_age,
+)
 from ._population import (
     Population as Population,
     sample_phenotypes as sample_phenotypes,
@@ -120,6 +129,7 @@ from ._rotations import (
     sixd_to_matrix as sixd_to_matrix,
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
+from ._store import load as load, register_type as register_type, save as save
 from ._skinning import (
     dense_weights_to_topk as dense_weights_to_topk,
     dqs as dqs,

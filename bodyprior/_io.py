@@ -156,15 +156,16 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 # `metadata.json` with "format", "version" and the sha256 of the member "leaves.eqx", plus members.
 
 
-def _write_zip(path: str | os.PathLike, metadata: dict, members: dict[str, bytes]) -> None:
-    """Writes `metadata.json` (with the sha256 of `members["leaves.eqx"]` added as
-    "leaves_sha256", which `_read_zip` checks) and `members` (stored, uncompressed) to `path`
-    atomically."""
+def _write_zip(
+    path: str | os.PathLike, metadata: dict, members: dict[str, bytes], payload: str = "leaves.eqx"
+) -> None:
+    """Writes `metadata.json` (with the sha256 of `members[payload]` added as "leaves_sha256",
+    which `_read_zip` checks) and `members` (stored, uncompressed) to `path` atomically."""
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise ValueError(f"`path`: directory {directory!r} does not exist.")
-    metadata = {**metadata, "leaves_sha256": hashlib.sha256(members["leaves.eqx"]).hexdigest()}
+    metadata = {**metadata, "leaves_sha256": hashlib.sha256(members[payload]).hexdigest()}
     with atomic_open(path, "wb") as f:
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
             zf.writestr("metadata.json", json.dumps(metadata, indent=1))
@@ -173,11 +174,16 @@ def _write_zip(path: str | os.PathLike, metadata: dict, members: dict[str, bytes
 
 
 def _read_zip(
-    path: str, fmt: str, version: int, members: tuple[str, ...], optional: tuple[str, ...] = ()
+    path: str,
+    fmt: str,
+    version: int,
+    members: tuple[str, ...],
+    optional: tuple[str, ...] = (),
+    payload: str = "leaves.eqx",
 ) -> tuple[dict, dict[str, bytes]]:
     """`(metadata, {member: bytes})` of a container written by `_write_zip`, after checking that
     it is a readable zip with those members, of format `fmt` and version `version`, and that
-    "leaves.eqx" matches the recorded sha256. Raises `ValueError` naming `path` otherwise.
+    the member `payload` matches the recorded sha256. Raises `ValueError` naming `path` otherwise.
     Members named in `optional` are returned when present (members added to a format later)."""
     if not os.path.isfile(path):
         raise ValueError(f"`path`: no such file {path!r}.")
@@ -207,7 +213,7 @@ def _read_zip(
             f"{path!r}: unsupported {fmt} version {meta.get('version')!r}; this bodyprior reads "
             f"version {version}."
         )
-    if hashlib.sha256(data["leaves.eqx"]).hexdigest() != meta.get("leaves_sha256"):
+    if hashlib.sha256(data[payload]).hexdigest() != meta.get("leaves_sha256"):
         raise ValueError(f"{path!r}: checksum mismatch, the array data are corrupted.")
     return meta, data
 

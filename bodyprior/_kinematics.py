@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._rotations import _as_float
+from ._store import register_type
 from ._validate import check_array
 
 __all__ = [
@@ -318,6 +319,9 @@ class Similarity(eqx.Module):
         top = jnp.concatenate([self.scale * self.rotation, self.translation[:, None]], axis=1)
         bottom = jnp.array([[0, 0, 0, 1]], dtype=top.dtype)
         return jnp.concatenate([top, bottom], axis=0)
+
+
+register_type(Similarity)
 
 
 def umeyama(

@@ -102,6 +102,7 @@ from ._rotations import (
     matrix_to_axis_angle,
     matrix_to_euler,
 )
+from ._store import register_type
 from ._validate import check_array, is_tracer
 
 __all__ = [
@@ -321,6 +322,9 @@ class PoseSet(eqx.Module):
 
 # --------------------------------------------------------------------------------------------------
 # rig pose <-> Euler
+
+
+register_type(PoseSet)
 
 
 def _pose_index(joint_names: tuple[str, ...]) -> np.ndarray:
@@ -1104,7 +1108,7 @@ def split_by_clip(
 
 @eqx.filter_jit
 def _posed_vertices(body, phen, euler):
-    return jax.vmap(lambda e: evaluate(body, phen, rig_pose(body, e))[0])(euler)
+    return jax.vmap(lambda p, e: evaluate(body, p, rig_pose(body, e))[0])(phen, euler)
 
 
 def render_poses(
@@ -1116,8 +1120,9 @@ def render_poses(
     ncols: int | None = None,
     view="front",
     cell_size: tuple[int, int] = (256, 192),
+    phenotypes: Float[ArrayLike, "*n 11"] | None = None,
 ) -> np.ndarray:
-    """Renders DSPP poses on the default body (default phenotypes) as a contact-sheet PNG.
+    """Renders DSPP poses on the default body as a contact-sheet PNG.
 
     **Arguments:**
 
@@ -1125,6 +1130,9 @@ def render_poses(
     - `euler`: shape `(n, 20, 3)`, radians, order [`bodyprior.EULER_ORDER`][].
     - `path`: PNG file to write (atomically).
     - `labels`, `ncols`, `view`, `cell_size`: as [`bodyprior.contact_sheet`][].
+    - `phenotypes`: the body's phenotypes, `(11,)` for all poses or `(n, 11)` one per pose
+      (e.g. from [`bodyprior.phenotypes_from_measurements`][]); default the average body,
+      `phenotype_vector()`.
 
     **Returns:** the image, `uint8` of shape `(H, W, 3)`.
 
@@ -1138,8 +1146,16 @@ def render_poses(
         render_poses(body, np.asarray(ps.euler)[idx], "salsa.png", ncols=5, cell_size=(240, 170))
         ```
     """
-    check_array(euler, "euler", (None, len(POSE_JOINTS), 3))
-    phen = jnp.asarray(phenotype_vector(), body.template.dtype)
+    euler = check_array(euler, "euler", (None, len(POSE_JOINTS), 3))
+    n = euler.shape[0]
+    if phenotypes is None:
+        phen = np.broadcast_to(phenotype_vector(), (n, 11))
+    else:
+        phen = np.asarray(phenotypes, np.float64)
+        if phen.shape == (11,):
+            phen = np.broadcast_to(phen, (n, 11))
+        check_array(phen, "phenotypes", (n, 11))
+    phen = jnp.asarray(phen, body.template.dtype)
     verts = np.asarray(_posed_vertices(body, phen, jnp.asarray(euler, body.template.dtype)))
     img = contact_sheet(
         verts, np.asarray(body.faces), labels=labels, ncols=ncols, view=view, cell_size=cell_size

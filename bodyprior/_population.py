@@ -35,6 +35,7 @@ from jaxtyping import Array, Float, Int
 from tqdm.auto import tqdm
 
 from ._body import PHENOTYPES, DefaultBody, evaluate, load_default_body
+from ._store import register_type
 from .assets import load_asset
 
 # Joints jittered for the standing posture, with the standard deviation (degrees) of each axis-angle
@@ -71,6 +72,9 @@ class Population(eqx.Module):
 
     def __len__(self) -> int:
         return self.vertices.shape[0]
+
+
+register_type(Population)
 
 
 def _interp(x, xs, ys):

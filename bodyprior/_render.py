@@ -455,6 +455,23 @@ def _label_font(px: int):
         return ImageFont.load_default()
 
 
+def _fit_text(draw, text: str, font, width: float) -> str:
+    """`text`, cut at a word (else a character) boundary and ended with "..." so that it is at
+    most `width` pixels wide in `font` (whole when it fits)."""
+    if draw.textlength(text, font=font) <= width:
+        return text
+    words = text.split(" ")
+    for k in range(len(words) - 1, 0, -1):  # whole words first
+        cand = " ".join(words[:k]) + "..."
+        if draw.textlength(cand, font=font) <= width:
+            return cand
+    for k in range(len(text) - 1, 0, -1):
+        cand = text[:k].rstrip() + "..."
+        if draw.textlength(cand, font=font) <= width:
+            return cand
+    return ""
+
+
 def contact_sheet(
     meshes,
     faces=None,
@@ -477,7 +494,8 @@ def contact_sheet(
       `faces`, or a list of `(V, 3)` arrays together with `faces`.
     - `faces`: `(F, 3)` faces shared by all meshes (required when `meshes` holds vertices only).
     - `ncols`: grid columns; default `ceil(sqrt(N))`.
-    - `labels`: one string per mesh, drawn under its cell, or `None`.
+    - `labels`: one string per mesh, drawn under its cell, or `None`. A label wider than its cell
+      is cut at a word boundary and ended with "..." (never clipped mid-glyph at the cell edge).
     - `cell_size`: `(height, width)` of each rendered cell in pixels (labels add a strip below).
     - `same_scale`: fit every cell to the union of all bounds, so heights are comparable and bodies
       keep their relative placement; `False` fits each mesh to its own cell.
@@ -534,6 +552,7 @@ def contact_sheet(
         font = _label_font(max(8, int(0.7 * lh)))
         ink = (0, 0, 0) if bg.mean() > 0.5 else (255, 255, 255)
         for i, text in enumerate(labels):
+            text = _fit_text(draw, text, font, cw - 4)
             rr, cc = divmod(i, ncols)
             x = cc * cw + cw / 2
             y = rr * (ch + lh) + ch + lh / 2

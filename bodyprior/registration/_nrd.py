@@ -100,6 +100,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._linalg import pcg
 from .._solution import RESULTS, Solution, _check
+from .._store import register_type
 from .._validate import check_array, named_preset
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
@@ -287,6 +288,9 @@ class NRDFit(eqx.Module):
 
 # --------------------------------------------------------------------------------------------------
 # Host-side preparation (smoothness groups, head plane, coarse patches), built once per template
+
+
+register_type(NRDFit, "bodyprior.registration.NRDFit")
 
 
 class NRDPrep(eqx.Module):

@@ -45,6 +45,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
+from .._store import register_type
 from ..registration._evaluate import fitting_error_batch
 from ..registration._nrd import _landmark_map
 from ..registration._template import RegistrationTemplate
@@ -282,6 +283,9 @@ class Registration(NamedTuple):
     """`(N, K)` shape coefficients of the S-SCAPE fits, standard deviations."""
     successful: np.ndarray | None = None
     """`(N,)` bool: both the S-SCAPE fit and NRD returned `RESULTS.successful`."""
+
+
+register_type(Registration, "bodyprior.sscape.Registration")
 
 
 def register_sscape_nrd(

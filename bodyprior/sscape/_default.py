@@ -13,7 +13,7 @@ building one from a population costs minutes, so the package ships one:
   [`bodyprior.sscape.learn`][] with 50 components on the `cmu_mb` template rig.
 
 The file's metadata records that provenance, the checksums of the assets it was built from and the
-build command, `python -m bodyprior.assets.build --space`; `load_model` verifies its checksum.
+build command, `python -m bodyprior.sscape.build_space`; `load_model` verifies its checksum.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ SPACE_NAME = "sscape_caesar.sscape"
 N_BODIES = 2000
 N_COMPONENTS = 50
 SEED = 2026
-_REBUILD = "rebuild it with `python -m bodyprior.assets.build --space`"
+_REBUILD = "rebuild it with `python -m bodyprior.sscape.build_space`"
 
 
 def space_path() -> str:
@@ -107,7 +107,7 @@ def build_default_space(path: str | None = None, *, progress: bool = True, log=p
     ratio = np.asarray(model.explained_variance)
     info = {
         "built_by": "bodyprior.sscape._default.build_default_space "
-        "(python -m bodyprior.assets.build --space)",
+        "(python -m bodyprior.sscape.build_space)",
         "population": {
             "n_bodies": N_BODIES,
             "scheme": "caesar",

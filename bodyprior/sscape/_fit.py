@@ -67,6 +67,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
 from .._solution import RESULTS, Solution, _check
+from .._store import register_type
 from .._validate import check_array, is_tracer, named_preset
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
@@ -216,6 +217,9 @@ class SScapeFit(eqx.Module):
 # --------------------------------------------------------------------------------------------------
 # Correspondences
 # --------------------------------------------------------------------------------------------------
+
+
+register_type(SScapeFit, "bodyprior.sscape.SScapeFit")
 
 
 def _compatible_search(
