@@ -11,12 +11,25 @@ import os
 # multiply compile time here; multi-device runs are tested in their own processes.
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+import tempfile  # noqa: E402
+
 import jax  # noqa: E402
 import jax.random as jr  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+# One persistent compilation cache for the whole run, shared by both xdist workers and the
+# experiment/benchmark subprocesses (they inherit the environment variable, which JAX reads): a
+# program that several processes compile (the S-SCAPE fit, NRD, ...) is compiled once per run.
+# Fresh per run (the controller creates it before the workers start), so no state carries over.
+_CACHE = os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(prefix="bodyprior-test-jax-cache-")
+)
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 # Property tests compile on their first example: no per-example deadline anywhere (a deadline
 # measures the machine's load, not the code), so the suite gives the same verdict idle or loaded.
