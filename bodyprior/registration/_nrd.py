@@ -816,6 +816,13 @@ def _nrd_batch_jit(init, prep, lm_v, lm_use, scan_arrays, cfg):
     return jax.vmap(fn)(init, scan_arrays)
 
 
+def _nrd_kernel(replicated, item):
+    """Per-scan kernel of `nrd_batch` for `batch_map` (several devices or processes)."""
+    prep, lm_v, lm_use, cfg = replicated
+    init, scan_arrays = item
+    return _run(init, prep, lm_v, lm_use, *scan_arrays, cfg)
+
+
 # --------------------------------------------------------------------------------------------------
 # Public entry points
 
@@ -950,12 +957,23 @@ def nrd_batch(
     template: RegistrationTemplate | NRDPrep,
     *,
     config: NRDConfig = NRDConfig(),
+    devices=None,
+    chunk_size: int | None = None,
+    progress: bool = False,
+    strategy: str | None = None,
     throw: bool = True,
 ) -> Solution:
-    """[`bodyprior.registration.nrd`][] for a batch of scans at once (`jax.vmap`, one jitted call).
+    """[`bodyprior.registration.nrd`][] for a batch of scans at once.
+
+    On one device of one process: one jitted `jax.vmap` call over the whole batch. With several
+    devices (`devices`, or more than one in `jax.devices()`), a `strategy`, or several
+    `jax.distributed` processes: the per-scan fit through [`bodyprior.registration.batch_map`][]
+    (chunks spread over the devices; every process takes its share of the batch and the results are
+    gathered to every process; see its module docstring).
 
     **Arguments:** as `nrd`, with a leading batch axis `B` on `init_vertices` and on every array of
-    `scans` (padded point clouds; padding has `point_mask = False`).
+    `scans` (padded point clouds; padding has `point_mask = False`), plus `devices`, `chunk_size`,
+    `progress` and `strategy` as in `batch_map` (used only on the multi-device path).
 
     **Returns:** a [`bodyprior.Solution`][] whose arrays have a leading axis `B` (`result` too:
     one per scan). With `throw=True` it raises once, naming the failed scans; with `False`, one
@@ -970,5 +988,21 @@ def nrd_batch(
             f"{arrays[0].shape[0]} scans."
         )
     lm_v, lm_use = _landmark_map(template, scans.landmark_names)
-    sol = _nrd_batch_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
+    arrays = _dtype_cast(init, arrays)
+    n_dev = len(jax.devices()) if devices is None else len(list(devices))
+    if strategy is None and n_dev == 1 and jax.process_count() == 1:
+        sol = _nrd_batch_jit(init, prep, lm_v, lm_use, arrays, config)
+    else:
+        from ._shard import batch_map
+
+        sol = batch_map(
+            _nrd_kernel,
+            (prep, lm_v, lm_use, config),
+            (init, arrays),
+            devices=devices,
+            chunk_size=chunk_size,
+            progress=progress,
+            desc="NRD",
+            strategy=strategy,
+        )
     return _check(sol, bool(throw), "NRD")

@@ -22,14 +22,21 @@ independent. Two ways to spread a chunk (`strategy`):
 
 **Multi-GPU node:** nothing to do: all local devices are used by default (`devices=None`).
 
-**`jax.distributed` cluster** (several processes, e.g. one per node; `"spmd"` only): call
+**`jax.distributed` cluster** (several processes, e.g. one per node or one per GPU): call
 `jax.distributed.initialize(...)` first in every process, then call the batched entry point in every
-process with the *same* full batch (each process may load or simulate all of it, or memory-map it);
-the mesh spans `jax.devices()` (all processes' devices), every process feeds only the slices that
-live on its own devices (`jax.make_array_from_callback`), and the results are gathered to every
-process (`multihost_utils.process_allgather`). This path is written against the documented JAX
-multi-controller API but is not exercised by the test suite (which runs one process with 8 host CPU
-devices, `XLA_FLAGS=--xla_force_host_platform_device_count=8`).
+process with the *same* full batch (each process may load or simulate all of it, or memory-map it).
+Two strategies span processes:
+
+- `"per_process"` (the default when `jax.process_count() > 1`): process `p` of `P` takes the
+  contiguous share `[p·⌈B/P⌉, (p+1)·⌈B/P⌉)` of the batch, runs it on its own devices
+  (`jax.local_devices()`, with that platform's local strategy), and the shares are gathered to every
+  process with `jax.experimental.multihost_utils.process_allgather` (on CPUs over JAX's Gloo
+  collectives). The only cross-process traffic is that gather, once per call. Tested with 2 local
+  CPU processes on 127.0.0.1 (`tests/test_distributed.py`): equal to the single-process batch.
+- `"spmd"`: the mesh spans `jax.devices()` (all processes' devices), every process feeds only the
+  slices that live on its own devices (`jax.make_array_from_callback`) and the partitioned program
+  all-reduces the loops' stopping predicates across processes in every iteration; the results are
+  gathered with `process_allgather`. Not exercised by the test suite.
 """
 
 from __future__ import annotations
@@ -132,12 +139,26 @@ def batch_map(
     - `progress`: tqdm progress bar over items.
     - `desc`: progress-bar label.
     - `strategy`: `"spmd"` (one partitioned program over a device mesh), `"per_device"` (one call
-      per device, no collectives; single process only) or `None` (`"per_device"` when every
-      device is a CPU, else `"spmd"`); see the module docstring.
+      per device, no collectives; single process only), `"per_process"` (every `jax.distributed`
+      process runs its share of the batch on its local devices, then one gather) or `None`
+      (`"per_process"` when `jax.process_count() > 1` and `devices` is None, else `"per_device"`
+      when every device is a CPU, else `"spmd"`); see the module docstring.
 
     **Returns:** the stacked outputs (leading axis B) with NumPy leaves on the host.
     """
     n = _leading(batched)
+    if strategy not in (None, "spmd", "per_device", "per_process"):
+        raise ValueError(
+            f"`strategy` must be 'spmd', 'per_device', 'per_process' or None, got {strategy!r}."
+        )
+    if strategy == "per_process" or (
+        strategy is None and devices is None and jax.process_count() > 1
+    ):
+        if devices is not None:
+            raise ValueError(
+                "`strategy='per_process'` uses every process's local devices: leave `devices` None."
+            )
+        return _per_process(kernel, replicated, batched, n, chunk_size, progress, desc)
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("`devices` must name at least one device.")
@@ -145,8 +166,6 @@ def batch_map(
     on_cpu = all(d.platform == "cpu" for d in devices)
     if strategy is None:
         strategy = "per_device" if on_cpu else "spmd"
-    if strategy not in ("spmd", "per_device"):
-        raise ValueError(f"`strategy` must be 'spmd', 'per_device' or None, got {strategy!r}.")
     if strategy == "per_device" and any(d.process_index != jax.process_index() for d in devices):
         raise ValueError(
             "`strategy='per_device'` runs in one process: `devices` must be this process's "
@@ -200,9 +219,9 @@ def batch_map(
                 pieces = []
                 for i, d in enumerate(devices):
                     sl = jax.tree_util.tree_map(
-                        lambda x: jax.device_put(x[i * per : (i + 1) * per], d)
-                        if eqx.is_array(x)
-                        else x,
+                        lambda x: (
+                            jax.device_put(x[i * per : (i + 1) * per], d) if eqx.is_array(x) else x
+                        ),
                         part,
                     )
                     pieces.append(run(kernel, on_device[i], sl))
@@ -212,6 +231,37 @@ def batch_map(
                 outs.append(_to_host(out))
             bar.update(min(chunk, n - s))
     return jax.tree_util.tree_map(lambda x: x[:n] if eqx.is_array(x) else x, _concat(outs))
+
+
+def _per_process(kernel, replicated, batched, n, chunk_size, progress, desc):
+    """`strategy="per_process"`: this process's contiguous share, run locally, then one gather."""
+    from jax.experimental import multihost_utils
+
+    n_proc, me = jax.process_count(), jax.process_index()
+    share = -(-n // n_proc)
+    lo, hi = min(me * share, n), min((me + 1) * share, n)
+    # every process runs exactly `share` items (same shapes for the gather): a short or empty share
+    # is padded by repeating an item, dropped again after the gather
+    rows = np.arange(lo, hi) if hi > lo else np.zeros(0, np.int64)
+    rows = np.concatenate([rows, np.full(share - len(rows), hi - 1 if hi > lo else 0)])
+    local = jax.tree_util.tree_map(lambda x: np.asarray(x)[rows] if eqx.is_array(x) else x, batched)
+    out = batch_map(
+        kernel,
+        replicated,
+        local,
+        devices=jax.local_devices(),
+        chunk_size=chunk_size,
+        progress=progress,
+        desc=f"{desc} [process {me}/{n_proc}]",
+    )
+    dyn, static = eqx.partition(out, eqx.is_array)
+    dyn = multihost_utils.process_allgather(dyn, tiled=True)  # (n_proc * share, ...) per leaf
+    keep = np.concatenate(
+        [np.arange(p * share, p * share + max(0, min(n, (p + 1) * share) - p * share))
+         for p in range(n_proc)]
+    )  # fmt: skip
+    dyn = jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], dyn)
+    return eqx.combine(dyn, static)
 
 
 def _concat(trees):
