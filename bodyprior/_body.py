@@ -36,13 +36,6 @@ from .assets import load_asset
 
 UNIT = 1e-4  # metres per int16 step in the asset
 
-#: Phenotype parameters, in the order of a phenotype vector. All lie in [0, 1]:
-# : gender 0 = male, 1 = female; age 0 = baby, 1/3 = child, 2/3 = young adult (~25 y), 1 = old (~90
-# y);
-#: muscle, weight: 0 = min, 0.5 = average, 1 = max; height: 0 = min, 1 = max; proportions 0 = ideal,
-# : 1 = uncommon; cupsize, firmness: 0 = min, 0.5 = average, 1 = max; african/asian/caucasian:
-# ethnicity
-#: weights, normalised by their sum (all zero = 1/3 each).
 PHENOTYPES = (
     "gender",
     "age",
@@ -56,6 +49,11 @@ PHENOTYPES = (
     "asian",
     "caucasian",
 )
+"""Phenotype parameters, in the order of a phenotype vector. All lie in [0, 1]: gender 0 = male, 1
+= female; age 0 = baby, 1/3 = child, 2/3 = young adult (~25 y), 1 = old (~90 y); muscle, weight:
+0 = min, 0.5 = average, 1 = max; height: 0 = min, 1 = max; proportions 0 = ideal, 1 = uncommon;
+cupsize, firmness: 0 = min, 0.5 = average, 1 = max; african/asian/caucasian: ethnicity weights,
+normalised by their sum (all zero = 1/3 each)."""
 _INTERPOLATED = {  # feature -> (variations in asset order, first anchor, last anchor)
     "gender": (("male", "female"), 0.0, 1.0),
     "age": (("newborn", "baby", "child", "young", "old"), -1.0 / 3.0, 1.0),

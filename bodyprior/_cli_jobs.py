@@ -17,7 +17,6 @@ import numpy as np
 SCAN_EXTENSIONS = (".ply", ".obj")
 MESH_EXTENSIONS = (".ply", ".obj")
 
-#: The CLI presets of `register`: (FitConfig preset, NRDConfig preset).
 REGISTER_PRESETS = {
     # The measured best on simulated laser scans (docs/results_sscape.md): S-SCAPE fit with the
     # landmark term and pose prior, anchored NRD without the head rule.
@@ -27,6 +26,7 @@ REGISTER_PRESETS = {
     # The paper / humanshape code: landmarks only for the similarity, the paper's NRD schedule.
     "paper": ("humanshape", "paper"),
 }
+"""The CLI presets of `register`: (FitConfig preset, NRDConfig preset)."""
 
 
 def _files(paths, extensions, what: str) -> list[str]:

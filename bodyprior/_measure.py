@@ -29,8 +29,8 @@ from ._body import PHENOTYPES, DefaultBody, load_default_body, phenotype_vector,
 from ._store import register_type
 from .assets import load_asset
 
-#: Body density of the mass convention, kg/m³ (anny's `Anthropometry.mass`).
 BODY_DENSITY = 980.0
+"""Body density of the mass convention, kg/m³ (anny's `Anthropometry.mass`)."""
 
 _I_MUSCLE, _I_WEIGHT, _I_HEIGHT = (PHENOTYPES.index(k) for k in ("muscle", "weight", "height"))
 

@@ -121,9 +121,6 @@ __all__ = [
     "split_by_clip",
 ]
 
-#: The 20 `cmu_mb` rig bones of a pose, in rig order: the CMU body joints without the root (Hips),
-#: the pelvis-to-hip bones `LHipJoint`/`RHipJoint` (no degrees of freedom in CMU data), the toes
-#: (absent from the Daz-friendly clips) and the fingers/thumbs (no mocap data).
 POSE_JOINTS: tuple[str, ...] = (
     "LeftUpLeg", "LeftLeg", "LeftFoot",
     "LowerBack", "Spine", "Spine1",
@@ -132,11 +129,14 @@ POSE_JOINTS: tuple[str, ...] = (
     "RightShoulder", "RightArm", "RightForeArm", "RightHand",
     "RightUpLeg", "RightLeg", "RightFoot",
 )  # fmt: skip
+"""The 20 `cmu_mb` rig bones of a pose, in rig order: the CMU body joints without the root (Hips),
+the pelvis-to-hip bones `LHipJoint`/`RHipJoint` (no degrees of freedom in CMU data), the toes
+(absent from the Daz-friendly clips) and the fingers/thumbs (no mocap data)."""
 
-#: Euler order of [`bodyprior.PoseSet`][] angles (intrinsic, as
-#: [`bodyprior.euler_to_matrix`][]; use `pose_rep="euler_" + EULER_ORDER`). Chosen on the shared
-#: CMU clips as the order whose middle angle comes least close to ±90° (gimbal lock).
 EULER_ORDER: str = "XYZ"
+"""Euler order of [`bodyprior.PoseSet`][] angles (intrinsic, as [`bodyprior.euler_to_matrix`][];
+use `pose_rep="euler_" + EULER_ORDER`). Chosen on the shared CMU clips as the order whose middle
+angle comes least close to ±90° (gimbal lock)."""
 
 # BVH axes (Y up, facing +Z, +X = body's left) -> bodyprior axes (Z up, facing -Y, +X = left)
 _M = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -234,8 +234,6 @@ _MAPS["rig"] = _self_map(_MAPS["cmu"])
 # release's hierarchy LFingers/RFingers (shared/data/mocap/SOURCES.md, A)
 _MB2008_TO_MB = {"LFingers": "LeftHandIndex1", "RFingers": "RightHandIndex1"}
 
-#: The BVH skeleton kinds that [`bodyprior.retarget`][] and [`bodyprior.load_mocap`][] read, by the
-#: name [`bodyprior.Retargeter`][] gives them.
 SKELETON_KINDS: dict[str, str] = {
     "rig": "bodyprior cmu_mb rig (written by bodyprior.poses_to_bvh)",
     "cmu_mb2008": "CMU MotionBuilder-friendly, 2008 names (LFingers/RFingers)",
@@ -243,6 +241,8 @@ SKELETON_KINDS: dict[str, str] = {
     "cmu_3dsmax": "CMU 3ds-Max-friendly",
     "daz": "CMU Daz-friendly",
 }
+"""The BVH skeleton kinds that [`bodyprior.retarget`][] and [`bodyprior.load_mocap`][] read, by the
+name [`bodyprior.Retargeter`][] gives them."""
 # joints whose presence identifies each skeleton kind, checked in this order
 _KIND_SIGNATURE = {
     "rig": ("Hips", "LHipJoint", "LeftUpLeg", "LowerBack", "Spine1", "Neck1", "LeftFingerBase",
@@ -269,9 +269,9 @@ _KIND_INFO = {
 _MAX_LOCAL_DEG = {"Head": 100.0, "Neck": 100.0, "Neck1": 100.0,
                   "LowerBack": 120.0, "Spine": 120.0, "Spine1": 120.0}  # fmt: skip
 
-#: Default true capture rates (frames per second) by a directory-name substring: the acLSTM
-#: readme.txt gives salsa 60 (indian and martial 120, as their headers say).
 DEFAULT_FRAME_RATES: dict[str, float] = {"salsa": 60.0}
+"""Default true capture rates (frames per second) by a directory-name substring: the acLSTM
+readme.txt gives salsa 60 (indian and martial 120, as their headers say)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -580,7 +580,7 @@ class Retargeter(eqx.Module):
     def local_matrices(self, bvh: Bvh, frames=None) -> Float[np.ndarray, "F 20 3 3"]:
         """Local rotation matrices of the 20 pose bones ([`bodyprior.POSE_JOINTS`][] order) at
         `frames` of `bvh`, shape `(F, 20, 3, 3)`, float64, bodyprior axes (the DSPP pose; the root
-        orientation is dropped). `frames` as in [`bodyprior.Retargeter.__call__`][]."""
+        orientation is dropped). `frames` as in `Retargeter.__call__`."""
         self._check_skeleton(bvh)
         return self._rotations(bvh, _frame_index(frames, bvh.n_frames))[0]
 
@@ -749,7 +749,7 @@ def retarget(
     - `bvh`: a [`bodyprior.Bvh`][] (see `SKELETON_KINDS` for the skeletons it may have).
     - `body`: a [`bodyprior.DefaultBody`][] with the `cmu_mb` rig.
     - `frames`, `keep_root_rotation`, `keep_root_translation`: as
-      [`bodyprior.Retargeter.__call__`][]; default all frames, root at rest, zero translation.
+      `Retargeter.__call__`; default all frames, root at rest, zero translation.
     - `unit`: metres per BVH length unit (default by skeleton kind, see
       [`bodyprior.Retargeter.from_bvh`][]).
 
@@ -774,8 +774,8 @@ def retarget(
     )
 
 
-#: Metres per length unit of the BVH files [`bodyprior.poses_to_bvh`][] writes (centimetres).
 _EXPORT_UNIT = 0.01
+"""Metres per length unit of the BVH files [`bodyprior.poses_to_bvh`][] writes (centimetres)."""
 _ROOT_CHANNELS = ("Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation")
 _JOINT_CHANNELS = ("Zrotation", "Yrotation", "Xrotation")  # R = Rz @ Ry @ Rx, as CMU's files
 

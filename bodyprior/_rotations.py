@@ -38,14 +38,16 @@ __all__ = [
     "sixd_to_matrix",
 ]
 
-#: The 12 valid Euler orders: 6 Tait-Bryan (three distinct axes) and 6 proper Euler (first == last).
 EULER_ORDERS: tuple[str, ...] = (
     "XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX",
     "XYX", "XZX", "YXY", "YZY", "ZXZ", "ZYZ",
 )  # fmt: skip
+"""The 12 valid Euler orders: 6 Tait-Bryan (three distinct axes) and 6 proper Euler (first ==
+last)."""
 
-#: Rotation representations accepted by [`bodyprior.rotation_to_matrix`][] (plus `"euler_<ORDER>"`).
 ROTATION_REPS: tuple[str, ...] = ("axis_angle", "quaternion", "matrix", "sixd")
+"""Rotation representations accepted by [`bodyprior.rotation_to_matrix`][] (plus
+`"euler_<ORDER>"`)."""
 
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 

@@ -8,6 +8,12 @@ from ._checkpoint import (
 from ._checkpoint import (
     save_prior as save_prior,
 )
+from ._default import (
+    default_pose_prior as default_pose_prior,
+)
+from ._default import (
+    default_shape_prior as default_shape_prior,
+)
 from ._fitting import (
     PriorResidual as PriorResidual,
 )
@@ -83,3 +89,35 @@ from ._train import (
 from ._train import (
     train_shape_prior as train_shape_prior,
 )
+
+__all__ = [
+    "default_pose_prior",
+    "default_shape_prior",
+    "DSPPConfig",
+    "fit_latent_to_landmarks",
+    "fit_pca_prior",
+    "fit_shape_space_to_landmarks",
+    "GeometryGAN",
+    "init_aegan",
+    "init_geometry_gan",
+    "joint_limit_violation",
+    "joint_limits",
+    "latent_statistics",
+    "load_prior",
+    "PCA_MODES",
+    "PCAPrior",
+    "plot_train_log",
+    "pose_prior_residual",
+    "PosePrior",
+    "PriorResidual",
+    "sample",
+    "save_prior",
+    "shape_prior_residual",
+    "ShapeFit",
+    "ShapePrior",
+    "spectral_norms",
+    "train_geometry_gan",
+    "train_pose_prior",
+    "train_shape_prior",
+    "TrainLog",
+]

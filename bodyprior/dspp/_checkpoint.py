@@ -67,9 +67,18 @@ def _skeleton(cls_name: str, kind: str, item_shape, config: DSPPConfig):
 # Priors
 
 
-def save_prior(path: str | os.PathLike, prior: ShapePrior | PosePrior | GeometryGAN) -> None:
+def save_prior(
+    path: str | os.PathLike,
+    prior: ShapePrior | PosePrior | GeometryGAN,
+    *,
+    info: dict | None = None,
+) -> None:
     """Writes a trained prior ([`bodyprior.dspp.ShapePrior`][], [`bodyprior.dspp.PosePrior`][] or
-    [`bodyprior.dspp.GeometryGAN`][]) to `path` atomically (format `bodyprior.dspp.prior` v1)."""
+    [`bodyprior.dspp.GeometryGAN`][]) to `path` atomically (format `bodyprior.dspp.prior` v1).
+    `info`: an optional JSON-serialisable provenance dict stored with it (training data, seed,
+    build command), returned by `load_prior(path, return_info=True)`."""
+    if info is not None and not isinstance(info, dict):
+        raise ValueError(f"`info` must be a dict or None, got {type(info).__name__}.")
     cls_name = type(prior).__name__
     if cls_name not in _CLASSES or not isinstance(prior, _CLASSES[cls_name]):
         raise ValueError(
@@ -87,11 +96,16 @@ def save_prior(path: str | os.PathLike, prior: ShapePrior | PosePrior | Geometry
         "item_shape": list(prior.mean.shape),
         "config": prior.config.to_dict(),
     }
+    if info is not None:
+        meta["info"] = info
     _write_zip(os.fspath(path), meta, {"leaves.eqx": payload})
 
 
-def load_prior(path: str | os.PathLike) -> ShapePrior | PosePrior | GeometryGAN:
+def load_prior(path: str | os.PathLike, *, return_info: bool = False):
     """Reads a prior written by [`bodyprior.dspp.save_prior`][], validating it.
+
+    **Returns:** the `ShapePrior`, `PosePrior` or `GeometryGAN`; with `return_info=True`,
+    `(prior, info)` where `info` is the provenance dict stored by `save_prior` (`{}` if none).
 
     **Raises:** `ValueError` if the file is missing, of another format/version, or corrupted."""
     path = os.fspath(path)
@@ -104,7 +118,8 @@ def load_prior(path: str | os.PathLike) -> ShapePrior | PosePrior | GeometryGAN:
         item_shape = tuple(int(s) for s in meta.get("item_shape"))
     except (TypeError, ValueError) as e:
         raise ValueError(f"{path!r}: invalid metadata: {e}") from e
-    return _deserialise(data["leaves.eqx"], _skeleton(cls_name, kind, item_shape, config), path)
+    prior = _deserialise(data["leaves.eqx"], _skeleton(cls_name, kind, item_shape, config), path)
+    return (prior, dict(meta.get("info") or {})) if return_info else prior
 
 
 # --------------------------------------------------------------------------------------------------

@@ -466,14 +466,14 @@ def depth_scan_truth(truth: DepthTruth, depth, camera: DepthCamera, *, n_points=
 # Simulated capture: posed subjects, manual landmarks, front/back scans
 # --------------------------------------------------------------------------------------------------
 
-#: The 14 landmarks placed on each depth image (the paper placed 14 landmarks by hand on every depth
-#: scan of Helten et al.'s data; which ones is not stated; these are joints a person can click on a
-#: depth image from the front and from the back).
 DEPTH_LANDMARKS = (
     "Vertex", "Rt. Acromion", "Lt. Acromion", "Rt. Radiale", "Lt. Radiale", "Rt. Radial Styloid",
     "Lt. Radial Styloid", "Rt. Trochanterion", "Lt. Trochanterion", "Rt. Femoral Lateral Epicn",
     "Lt. Femoral Lateral Epicn", "Rt. Lateral Malleolus", "Lt. Lateral Malleolus", "Crotch",
 )  # fmt: skip
+"""The 14 landmarks placed on each depth image (the paper placed 14 landmarks by hand on every
+depth scan of Helten et al.'s data; which ones is not stated; these are joints a person can
+click on a depth image from the front and from the back)."""
 
 
 def depth_landmarks(

@@ -56,8 +56,8 @@ __all__ = [
     "plot_cumulative_curves",
 ]
 
-#: Default thresholds of the paper's two cumulative plots, millimetres.
 THRESHOLDS_20MM = np.linspace(0.0, 20.0, 41)
+"""Default thresholds of the paper's two cumulative plots, millimetres."""
 THRESHOLDS_50MM = np.linspace(0.0, 50.0, 51)
 
 
