@@ -250,7 +250,10 @@ def cmd_learn(args) -> int:
     if len(paths) < 3:
         raise ValueError(f"`meshes`: need at least 3 meshes, got {len(paths)}.")
     verts, faces = [], None
-    for p in paths:
+    progress = not getattr(args, "no_progress", False)
+    from tqdm.auto import tqdm
+
+    for p in tqdm(paths, desc="reading meshes", unit="mesh", disable=not progress):
         v, f, _ = read_mesh(p)
         if f is None:
             raise ValueError(f"`meshes`: {p!r} has no faces (a point cloud); meshes are needed.")
@@ -281,10 +284,11 @@ def cmd_learn(args) -> int:
         compactness=[round(float(c), 5) for c in np.asarray(comp.ratio)],
     )
     if not args.no_measures and len(paths) >= k + 2:
-        gen = sscape.generalization(aligned, ms)
+        gen = sscape.generalization(aligned, ms, progress=progress)
         spec = sscape.specificity(
-            model, aligned, ms, key=jax.random.PRNGKey(args.seed), n_samples=args.samples
-        )
+            model, aligned, ms, key=jax.random.PRNGKey(args.seed), n_samples=args.samples,
+            progress=progress,
+        )  # fmt: skip
         report["generalization_mm"] = dict(zip(map(str, ms), _mm_list(gen.mean)))
         report["specificity_mm"] = dict(zip(map(str, ms), _mm_list(spec.mean)))
     base = os.path.splitext(args.out)[0]

@@ -218,6 +218,7 @@ def _add_jobs(sub) -> None:
     le.add_argument("--no-measures", action="store_true", help="skip generalization/specificity")
     le.add_argument("--seed", type=int, default=0)
     le.add_argument("--json", action="store_true", help="print the report as JSON")
+    le.add_argument("--no-progress", action="store_true")
     le.set_defaults(func=_job("cmd_learn"))
 
     po = sub.add_parser("pose", help="pose the default body from one BVH frame")

@@ -420,6 +420,23 @@ def test_specificity(model, getkey):
         specificity(learned, meshes, [learned.n_components + 1], key=getkey())
 
 
+def test_progress_blocks_give_the_same_result(model, getkey, capsys):
+    """`progress=True` runs generalization and specificity in padded blocks of 64 rows under a tqdm
+    bar: the same numbers as the single call (70 rows: one full block and one padded block)."""
+    meshes, _ = _low_rank_meshes(model, getkey(), n=70, rigid=False)
+    noisy = meshes + 1e-3 * jr.normal(getkey(), meshes.shape)
+    g0 = generalization(noisy, [1, 4], chunk_size=8)
+    g1 = generalization(noisy, [1, 4], chunk_size=8, progress=True)
+    np.testing.assert_allclose(g1.errors, g0.errors, rtol=1e-10)
+    learned = learn(noisy, model.faces, align=False)
+    key = getkey()
+    s0 = specificity(learned, noisy, [0, 3], key=key, n_samples=70, chunk_size=16)
+    s1 = specificity(learned, noisy, [0, 3], key=key, n_samples=70, chunk_size=16, progress=True)
+    np.testing.assert_allclose(s1.distances, s0.distances, rtol=1e-10)
+    err = capsys.readouterr().err
+    assert "generalization" in err and "specificity" in err and "70/70" in err
+
+
 # ------------------------------------------------------------------------------------------------
 # serialisation
 

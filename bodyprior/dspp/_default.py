@@ -71,7 +71,7 @@ def _load(kind: str, return_info: bool):
     return (prior, info) if return_info else prior
 
 
-def default_shape_prior(*, return_info: bool = False) -> ShapePrior:
+def default_shape_prior(*, return_info: bool = False) -> ShapePrior | tuple[ShapePrior, dict]:
     """The shipped DSPP shape prior (module docstring): samples `(6449, 3)` bodies in metres on the
     decimated topology, rest posture. `return_info=True` also returns its provenance dict.
 
@@ -79,7 +79,7 @@ def default_shape_prior(*, return_info: bool = False) -> ShapePrior:
     return _load("shape", return_info)
 
 
-def default_pose_prior(*, return_info: bool = False) -> PosePrior:
+def default_pose_prior(*, return_info: bool = False) -> PosePrior | tuple[PosePrior, dict]:
     """The shipped DSPP pose prior (module docstring): samples `(20, 3)` Euler angles in radians
     (`bodyprior.EULER_ORDER`, joints `bodyprior.POSE_JOINTS`; `bodyprior.rig_pose` turns them into
     a `cmu_mb` pose). `return_info=True` also returns its provenance dict.
@@ -101,12 +101,14 @@ def _bvh_checksums(root: Path) -> dict:
     return {"n_files": len(per), "sha256_of_list": total}
 
 
-def _log_summary(sol) -> dict:
+def _log_summary(sol, select: str) -> dict:
     log = sol.aux
     tail = max(1, log.n_steps // 10)
+    best = int(sol.stats["best_step"])
     out = {
         "cycles": int(log.n_steps),
-        "best_step": int(sol.stats["best_step"]),
+        "kept_step": best if select == "best" else int(log.n_steps),  # the shipped model's cycle
+        "monitor_best_step": best,
         "final_d_loss": round(float(np.mean(log.d_loss[-tail:])), 5),
         "final_g_loss": round(float(np.mean(log.g_loss[-tail:])), 5),
         "wall_time_s": round(float(log.wall_time_s), 1),
@@ -163,7 +165,7 @@ def build_default_shape_prior(
         },
         "preset": "shape",
         "select": "last",
-        "training": _log_summary(sol),
+        "training": _log_summary(sol, "last"),
         "jax_version": jax.__version__,
         "numpy_version": np.__version__,
         "sources": _source_checksums(),
@@ -218,13 +220,13 @@ def build_default_pose_prior(
         },
         "preset": "pose",
         "select": "best",
-        "training": _log_summary(sol),
+        "training": _log_summary(sol, "best"),
         "jax_version": jax.__version__,
         "numpy_version": np.__version__,
         "build_seconds": round(time.perf_counter() - t0, 1),
     }
     save_prior(path, sol.value, info=info)
     log(f"{path}: pose prior, {train.n_poses} poses from {len(poses.clip_names)} clips, kept cycle "
-        f"{info['training']['best_step']} ({info['build_seconds']} s, "
+        f"{info['training']['kept_step']} ({info['build_seconds']} s, "
         f"{os.path.getsize(path) / 2**20:.2f} MiB)")  # fmt: skip
     return info

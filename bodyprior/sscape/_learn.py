@@ -378,11 +378,17 @@ def _check_ms(n_components, upper: int, what: str) -> tuple[int, ...]:
 
 
 @eqx.filter_jit
-def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
+def _generalization_gram(x):
     n, v, _ = x.shape
     flat = x.reshape(n, v * 3)
     flat = flat - flat.mean(0)  # global centring keeps the Gram-matrix centring well conditioned
-    gram = flat @ flat.T  # (N, N), computed once for all left-out meshes
+    return flat, flat @ flat.T  # (N, N), computed once for all left-out meshes
+
+
+@eqx.filter_jit
+def _generalization_kernel(flat, gram, js, train_idx, ms: tuple[int, ...], chunk_size: int):
+    n = flat.shape[0]
+    v = flat.shape[1] // 3
     m_max = max(ms)
 
     def one(j, idx):
@@ -410,8 +416,29 @@ def _generalization_kernel(x, train_idx, ms: tuple[int, ...], chunk_size: int):
             out.append(jnp.mean(jnp.linalg.norm(r.reshape(v, 3), axis=-1)))
         return jnp.stack(out)
 
-    js = jnp.arange(n)
     return jax.lax.map(lambda a: one(*a), (js, train_idx), batch_size=chunk_size)
+
+
+# Items per jitted call when a progress bar is shown (the last block is padded: one compile).
+_PROGRESS_BLOCK = 64
+
+
+def _blocked(fn, items: tuple[np.ndarray, ...], progress: bool, desc: str):
+    """`fn(*items)` in one call, or with `progress` in blocks of `_PROGRESS_BLOCK` leading rows
+    (the last block padded by repeating its last row, dropped again) under a tqdm bar; the rows are
+    independent, so the result is the same."""
+    n = items[0].shape[0]
+    if not progress or n <= _PROGRESS_BLOCK:
+        return fn(*items)
+    from tqdm.auto import tqdm
+
+    outs = []
+    with tqdm(total=n, desc=desc, unit="mesh" if desc != "specificity" else "sample") as bar:
+        for lo in range(0, n, _PROGRESS_BLOCK):
+            rows = np.minimum(np.arange(lo, lo + _PROGRESS_BLOCK), n - 1)
+            outs.append(fn(*(a[rows] for a in items))[: min(_PROGRESS_BLOCK, n - lo)])
+            bar.update(min(_PROGRESS_BLOCK, n - lo))
+    return jnp.concatenate(outs)
 
 
 def generalization(
@@ -421,6 +448,7 @@ def generalization(
     n_train: int | None = None,
     seed: int = 42,
     chunk_size: int = 8,
+    progress: bool = False,
 ) -> Generalization:
     """Leave-one-out generalization error (humanshape evalMode 1; Pishchulin et al. 2017 §5.1).
 
@@ -442,6 +470,8 @@ def generalization(
     - `n_train`: optional training subset size (`<= N - 1`).
     - `seed`: NumPy seed for the subsets.
     - `chunk_size`: left-out meshes per vmapped batch.
+    - `progress`: a tqdm bar over the left-out meshes (then computed 64 per jitted call; same
+      result).
 
     **Returns:** a [`bodyprior.sscape.Generalization`][], errors in mm.
     """
@@ -463,8 +493,13 @@ def generalization(
             [np.sort(rng.choice(np.delete(np.arange(n), j), t, replace=False)) for j in range(n)]
         )
     ms = _check_ms(n_components, t - 1, "at most the training-set size minus one")
-    errors = _generalization_kernel(
-        jnp.asarray(meshes), jnp.asarray(idx, dtype=jnp.int32), ms, max(1, int(chunk_size))
+    flat, gram = _generalization_gram(jnp.asarray(meshes))
+    cs = max(1, int(chunk_size))
+    errors = _blocked(
+        lambda js, ix: _generalization_kernel(flat, gram, jnp.asarray(js), jnp.asarray(ix), ms, cs),
+        (np.arange(n, dtype=np.int32), np.asarray(idx, dtype=np.int32)),
+        bool(progress),
+        "generalization",
     )
     mean = errors.mean(0)
     std = errors.std(0, ddof=1) if n > 1 else jnp.zeros_like(mean)
@@ -474,7 +509,7 @@ def generalization(
 
 
 @eqx.filter_jit
-def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_size: int):
+def _specificity_samples(coeffs, z):
     # ML Gaussian (1/n) of the training coefficients, sampled as m + U Lambda^{1/2} z.
     m = coeffs.mean(0)
     c = coeffs - m
@@ -483,8 +518,11 @@ def _specificity_kernel(mean, basis, coeffs, x, z, ms: tuple[int, ...], chunk_si
     # Canonical eigenvector signs (largest-magnitude entry positive), so samples are reproducible.
     pivot = jnp.take_along_axis(u, jnp.argmax(jnp.abs(u), axis=0)[None], axis=0)[0]
     u = u * jnp.where(pivot < 0, -1.0, 1.0)
-    samples = m + (z * jnp.sqrt(jnp.maximum(lam, 0.0))) @ u.T  # (S, m_max)
+    return m + (z * jnp.sqrt(jnp.maximum(lam, 0.0))) @ u.T  # (S, m_max)
 
+
+@eqx.filter_jit
+def _specificity_kernel(mean, basis, samples, x, ms: tuple[int, ...], chunk_size: int):
     def nearest(b):
         recon = jnp.stack(
             [mean + jnp.tensordot(b[:k], basis[:k], axes=1) for k in ms]
@@ -507,6 +545,7 @@ def specificity(
     key,
     n_samples: int = 1000,
     chunk_size: int = 32,
+    progress: bool = False,
 ) -> Specificity:
     """Specificity of a shape space (humanshape evalMode 2; Pishchulin et al. 2017 §5.1).
 
@@ -527,6 +566,7 @@ def specificity(
     - `key`: JAX PRNG key for the samples.
     - `n_samples`: number of samples `S`.
     - `chunk_size`: batch size for the chunked loops.
+    - `progress`: a tqdm bar over the samples (then computed 64 per jitted call; same result).
 
     **Returns:** a [`bodyprior.sscape.Specificity`][], distances in mm.
     """
@@ -542,7 +582,14 @@ def specificity(
     basis = model.basis[:m_max]
     coeffs = jnp.einsum("nvd,kvd->nk", x - model.mean[None], basis)
     z = jr.normal(key, (s, m_max), dtype=model.mean.dtype)
-    dist = _specificity_kernel(model.mean, basis, coeffs, x, z, ms, max(1, int(chunk_size)))
+    samples = _specificity_samples(coeffs, z)
+    cs = max(1, int(chunk_size))
+    dist = _blocked(
+        lambda b: _specificity_kernel(model.mean, basis, jnp.asarray(b), x, ms, cs),
+        (np.asarray(samples),),
+        bool(progress),
+        "specificity",
+    )
     mean = dist.mean(0)
     var = dist.var(0)
     se = jnp.sqrt(dist.var(0, ddof=1)) / np.sqrt(s - 1)
