@@ -174,6 +174,8 @@ def run(args) -> dict:
         for k, v in recon.items():
             metrics[f"{P}_recon_pca{k}_mm"] = v
         variants = VARIANTS if pop_name == "full_age" else {"aegan": {}}
+        if args.variants is None and mode == "quick":  # same network shapes: no extra compiles
+            variants = {k: v for k, v in variants.items() if k in ("aegan", "aegan_long")}
         if args.variants is not None:
             variants = {k: v for k, v in variants.items() if k in args.variants or k == "aegan"}
         for v_name, v in variants.items():

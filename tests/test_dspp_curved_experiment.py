@@ -1,0 +1,28 @@
+"""experiments/dspp_curved.py (issue 15 §2: DSPP on the full-age population), quick mode."""
+
+import json
+
+import pytest
+from helpers import run_script
+
+
+@pytest.mark.typecheck_off
+def test_dspp_curved_quick(tmp_path):
+    run_script("experiments/dspp_curved.py", "--quick", "--no-progress", "--out", tmp_path)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["mode"] == "quick"
+    for f in ("samples_full_age.png", "samples_adult.png", "heights.png"):
+        assert (tmp_path / f).stat().st_size > 1000, f
+    for pop in ("full_age", "adult"):
+        for g in ("pca", "aegan", "ae_gauss", "train"):
+            assert 0.0 <= m[f"{pop}_{g}_1nna"] <= 1.0
+            assert 0.0 <= m[f"{pop}_{g}_outlier_frac"] <= 1.0
+        # PCA reconstruction error falls with K
+        r = [m[f"{pop}_recon_pca{k}_mm"] for k in (8, 16, 32, 64)]
+        assert all(a >= b for a, b in zip(r, r[1:])), r
+    # the full age range spans children to adults: its test bodies differ in height by > 0.5 m
+    lo, hi = m["full_age_test_height_range_m"]
+    assert hi - lo > 0.5 and m["adult_test_height_range_m"][0] > lo
+    assert "full_age_recon_aegan_long_mm" in m and "adult_recon_aegan_long_mm" not in m
+    # real training bodies are never outliers against the training set itself
+    assert m["full_age_train_outlier_frac"] == 0.0
