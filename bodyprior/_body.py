@@ -50,7 +50,10 @@ PHENOTYPES = (
     "caucasian",
 )
 """Phenotype parameters, in the order of a phenotype vector. All lie in [0, 1]: gender 0 = male, 1
-= female; age 0 = baby, 1/3 = child, 2/3 = young adult (~25 y), 1 = old (~90 y); muscle, weight:
+= female; age: the MakeHuman targets' anchors -1/3 = newborn, 0 = baby, 1/3 = child, 2/3 =
+young, 1 = old; anny's morphological-age table (`bodyprior.age_to_years`, used by
+`sample_population`) puts 0 at 0 years, 1/3 at ~8, 2/3 at ~16, 1 at 110 (18 y = 0.77, 64 y =
+0.83; negative ages have no years); muscle, weight:
 0 = min, 0.5 = average, 1 = max; height: 0 = min, 1 = max; proportions 0 = ideal, 1 = uncommon;
 cupsize, firmness: 0 = min, 0.5 = average, 1 = max; african/asian/caucasian: ethnicity weights,
 normalised by their sum (all zero = 1/3 each)."""
@@ -69,7 +72,8 @@ RIGS = ("cmu_mb", "game_engine")
 _PHENOTYPE_RANGES = {k: (-1.0 / 3.0, 1.0) if k == "age" else (0.0, 1.0) for k in PHENOTYPES}
 _PHENOTYPE_HINTS = {
     "gender": " (0 = male, 1 = female)",
-    "age": " (-1/3 = newborn, 0 = baby, 1/3 = child, 2/3 = young adult ~25 y, 1 = old ~90 y)",
+    "age": " (-1/3 = newborn, 0 = baby (0 y), 1/3 = child (~8 y), 2/3 = young (~16 y), "
+    "0.77 = 18 y, 0.83 = 64 y, 1 = old (110 y); bodyprior.years_to_age converts)",
     "height": " (0 = min, 1 = max; not a length)",
 }
 

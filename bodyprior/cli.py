@@ -123,11 +123,14 @@ def _cmd_sample(args) -> int:
 
 
 def cache_dir() -> str:
-    """The CLI's persistent JAX compilation cache directory: `$BODYPRIOR_CACHE`, else
-    `$XDG_CACHE_HOME/bodyprior/jax` or `~/.cache/bodyprior/jax`."""
-    env = os.environ.get("BODYPRIOR_CACHE")
-    if env:
-        return os.path.abspath(os.path.expanduser(env))
+    """The CLI's persistent JAX compilation cache directory: `$BODYPRIOR_CACHE`, else JAX's own
+    `$JAX_COMPILATION_CACHE_DIR` (a notebook or job that already points JAX at a cache shares it
+    with the commands it starts), else `$XDG_CACHE_HOME/bodyprior/jax` or
+    `~/.cache/bodyprior/jax`."""
+    for var in ("BODYPRIOR_CACHE", "JAX_COMPILATION_CACHE_DIR"):
+        env = os.environ.get(var)
+        if env:
+            return os.path.abspath(os.path.expanduser(env))
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "bodyprior", "jax")
 

@@ -195,3 +195,16 @@ def test_shipped_space_bad_input():
     for bad in (2.5, True, "20"):
         with pytest.raises(ValueError, match="n_components"):
             sscape.default_space(bad)
+
+
+def test_cache_dir_precedence(monkeypatch, tmp_path):
+    from bodyprior.cli import cache_dir
+
+    monkeypatch.setenv("BODYPRIOR_CACHE", str(tmp_path / "a"))
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "b"))
+    assert cache_dir() == str(tmp_path / "a")
+    monkeypatch.delenv("BODYPRIOR_CACHE")
+    assert cache_dir() == str(tmp_path / "b")  # JAX's own variable: shared with the caller
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "x"))
+    assert cache_dir() == str(tmp_path / "x" / "bodyprior" / "jax")
