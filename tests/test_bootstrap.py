@@ -171,3 +171,51 @@ def test_landmark_gate_sees_sliding(toy):
         GateConfig(max_landmark_rms_mm=0.0)
     with pytest.raises(ValueError, match="landmark_factor"):
         calibrate_gate(refs, sc, tmpl, landmark_factor=-1.0)
+
+
+def test_tangent_anchor_removes_a_common_sliding_of_the_correspondence(toy):
+    """`anchor="tangent"`: registrations whose vertices all slid the same way along the surface
+    (a tangential shift, invisible in every scan) teach the next space the shapes, not the slide:
+    its mean moves only along the previous mean's normals, while a real normal change passes."""
+    import jax
+
+    from bodyprior.sscape._bootstrap import _remove_tangential_drift
+
+    model, tmpl, bodies, scans = toy
+    mean = np.asarray(model.mean)
+    n = np.asarray(bp.vertex_normals(mean, model.faces))
+    rng = np.random.default_rng(5)
+    slide = rng.normal(size=mean.shape) * 0.004
+    slide -= n * np.sum(slide * n, -1, keepdims=True)  # tangential, 4 mm scale
+    bulge = 0.003 * n  # a real normal change of the mean shape, 3 mm
+    meshes = mean + slide + bulge + 0.001 * rng.normal(size=(12, *mean.shape))
+    out = np.asarray(_remove_tangential_drift(jnp.asarray(meshes), jnp.asarray(mean), model.faces))
+    d = out.mean(0) - mean
+    tang = d - n * np.sum(d * n, -1, keepdims=True)
+    assert np.abs(tang).max() < 1e-10
+    # the bulge survives (less what the rigid alignment to the previous mean takes of it)
+    assert abs(np.sum(d * n, -1).mean() - 0.003) < 3e-4
+    # per-mesh differences (the shapes the space learns) are untouched
+    np.testing.assert_allclose(out - out.mean(0), meshes - meshes.mean(0), atol=5e-4)
+
+    def register(m, s):
+        return Registration(meshes + slide, np.zeros((12, 4, 3)), None)
+
+    init = learn(jnp.asarray(bodies), tmpl.faces, n_components=3, rig=tmpl.rig)
+    plain = bootstrap(init, scans, tmpl, n_passes=2, n_components=3, register=register,
+                      progress=False)  # fmt: skip
+    anch = bootstrap(init, scans, tmpl, n_passes=2, n_components=3, register=register,
+                     progress=False, anchor="tangent")  # fmt: skip
+
+    def tangential_offset(m):
+        ref = np.asarray(init.mean)
+        al, _ = bp.sscape.procrustes_align(jnp.asarray(np.asarray(m.mean)[None]),
+                                           reference=jnp.asarray(ref))  # fmt: skip
+        dd = np.asarray(al[0]) - ref
+        nn = np.asarray(bp.vertex_normals(ref, model.faces))
+        return np.linalg.norm(dd - nn * np.sum(dd * nn, -1, keepdims=True), axis=-1).mean()
+
+    assert tangential_offset(anch.model) < 0.3 * tangential_offset(plain.model)
+    with pytest.raises(ValueError, match="`anchor`"):
+        bootstrap(init, scans, tmpl, n_passes=1, register=register, anchor="normal")
+    del jax
