@@ -170,7 +170,8 @@ def sample_population(
 
     **Arguments:**
 
-    - `key`: a `jax.random` key (the result is a deterministic function of it).
+    - `key`: a `jax.random` key (the result is a deterministic function of it and of the
+      precision: with `jax_enable_x64` on, the same key draws other bodies than with it off).
     - `n`: number of bodies (CAESAR: 4,308).
     - `body`: the default body to use; by default `load_default_body("cmu_mb", local_changes=True)`.
       A body loaded without local changes gives bodies without them.

@@ -458,7 +458,9 @@ def train_shape_prior(
 
     **Returns:** a [`bodyprior.Solution`][]: `value` the [`bodyprior.dspp.ShapePrior`][], `aux`
     the [`bodyprior.dspp.TrainLog`][], `stats` `{"num_steps": cycles recorded, "best_step": the
-    selected monitor cycle or -1}`.
+    monitor's best cycle (validation 1-NNA closest to 0.5; the returned model's cycle only with
+    `select="best"`; with `"last"` the returned model is the last cycle's) or -1 without
+    `validation`}`.
     """
     config = DSPPConfig.preset("shape") if config is None else config
     return _train(data, "shape", "aegan", key=key, config=config, checkpoint_dir=checkpoint_dir,

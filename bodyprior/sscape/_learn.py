@@ -459,7 +459,10 @@ def generalization(
     already be aligned (e.g. by [`bodyprior.sscape.procrustes_align`][] on all of them); as in
     humanshape the left-out mesh is not re-aligned. PCA uses the training set's Gram matrix,
     sliced from the Gram matrix of all meshes (computed once), so each left-out mesh costs
-    `O(T^3 + N D M)` (use float64 for large sets). Memory per left-out mesh is `O(T^2 + D M)`.
+    `O(T^3 + N D M)` (use float64 for large sets: components whose eigenvalue is below
+    `100 T eps λ_1` count as zero, which in float32 (`eps` 1.2e-7) drops every component past
+    ~20 of a body population, so G(M) stays flat beyond there; float64 does not). Memory per
+    left-out mesh is `O(T^2 + D M)`.
     Jitted; left-out meshes are processed `chunk_size` at a time under `vmap`.
 
     **Arguments:**
