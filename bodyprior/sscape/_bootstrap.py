@@ -45,12 +45,11 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
-from .._geometry import vertex_normals
 from .._store import register_type
 from ..registration._evaluate import fitting_error_batch
 from ..registration._nrd import _landmark_map
 from ..registration._template import RegistrationTemplate
-from ._learn import learn, procrustes_align
+from ._learn import learn
 from ._model import SScapeModel
 
 __all__ = [
@@ -353,25 +352,9 @@ class BootstrapResult(NamedTuple):
         return [p.n_accepted for p in self.passes]
 
 
-def _learn_from(meshes, tmpl, n_components, anchor_model: SScapeModel | None = None):
+def _learn_from(meshes, tmpl, n_components):
     k = int(min(n_components, meshes.shape[0] - 1))
-    meshes = jnp.asarray(meshes)
-    if anchor_model is not None:
-        meshes = _remove_tangential_drift(meshes, anchor_model.mean, tmpl.faces)
-    return learn(meshes, tmpl.faces, n_components=k, rig=tmpl.rig)
-
-
-def _remove_tangential_drift(meshes, previous_mean, faces):
-    """The registrations, rigidly aligned to the previous space's mean, less the tangential part
-    (in the tangent planes of `previous_mean`) of their mean's displacement from it: the new
-    space's mean moves only along the previous mean's normals. A tangential shift of every
-    registration's correspondence (vertices sliding along the surface, the same way in every
-    scan) leaves the surface unchanged, so no scan can confirm it: it is drift, not shape."""
-    aligned, _ = procrustes_align(meshes, reference=previous_mean)
-    d = aligned.mean(0) - previous_mean  # (V, 3)
-    n = vertex_normals(previous_mean, faces)
-    tangential = d - n * jnp.sum(d * n, axis=-1, keepdims=True)
-    return aligned - tangential[None]
+    return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
 
 
 def bootstrap(
@@ -387,7 +370,6 @@ def bootstrap(
     nrd_config=None,
     progress: bool = True,
     callback: Callable[[int, BootstrapPass], None] | None = None,
-    anchor: str = "none",
 ) -> BootstrapResult:
     """Bootstrapped registration (paper §3.3, §4.5): `n_passes` rounds of "register every scan from
     the current space, gate, learn a new space from the accepted registrations".
@@ -410,11 +392,6 @@ def bootstrap(
       [`bodyprior.sscape.register_sscape_nrd`][] with `fit_config`/`nrd_config`.
     - `progress`: progress bars.
     - `callback`: called as `callback(r, pass)` after each pass (e.g. to log or checkpoint).
-    - `anchor`: `"none"` (the paper: each space is PCA of the accepted registrations) or
-      `"tangent"`: before learning, the accepted registrations are aligned to the current space's
-      mean and the tangential part of their mean's displacement from it is removed, so the
-      correspondence of the spaces cannot slide along the surface from pass to pass (a common
-      tangential shift leaves every surface unchanged: no scan can confirm it).
 
     **Returns:** a [`bodyprior.sscape.BootstrapResult`][] (`accepted_per_pass` is the paper's list).
     """
@@ -427,8 +404,6 @@ def bootstrap(
             f"`init_model` has {init_model.n_vertices} vertices, the template "
             f"{template.n_vertices}."
         )
-    if anchor not in ("none", "tangent"):
-        raise ValueError(f"`anchor` must be 'none' or 'tangent', got {anchor!r}.")
     if register is None:
 
         def register(model, s):
@@ -446,6 +421,5 @@ def bootstrap(
         if callback is not None:
             callback(r, p)
         if p.n_accepted >= 2:
-            model = _learn_from(reg.vertices[g.accepted], template, n_components,
-                                anchor_model=model if anchor == "tangent" else None)  # fmt: skip
+            model = _learn_from(reg.vertices[g.accepted], template, n_components)
     return BootstrapResult(tuple(passes), model)
