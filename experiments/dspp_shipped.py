@@ -36,7 +36,6 @@ import numpy as np
 
 import bodyprior as bp
 from bodyprior import dspp
-from bodyprior.dspp import _default
 
 
 def _metrics(prefix, gen, ref, train, metric, unit) -> dict:
@@ -66,7 +65,8 @@ def run(args) -> dict:
     fresh = bp.sample_population(n_shape, key=jr.PRNGKey(args.seed), progress=False)
     test = np.asarray(fresh.vertices[:, vmap_], np.float32)
     n_train_ref = n_shape
-    train_pop = bp.sample_population(n_train_ref, key=jr.PRNGKey(_default.SEED), progress=False)
+    train_pop = bp.sample_population(n_train_ref, key=jr.PRNGKey(sinfo["data"]["seed"]),
+                                  progress=False)  # fmt: skip
     train = np.asarray(train_pop.vertices[:, vmap_], np.float32)
     gen = np.asarray(dspp.sample(shape_prior, n_shape, key=jr.PRNGKey(args.seed + 1)))
     unit = 1e3
@@ -85,9 +85,12 @@ def run(args) -> dict:
     mocap = Path(args.mocap) if args.mocap else bp.find_mocap_dir()
     if mocap is None:
         raise SystemExit("no CMU mocap folder: pass --mocap DIR")
-    poses = bp.load_mocap(str(mocap), fps=_default.FPS, progress=False)
-    tr, val = bp.split_by_clip(poses, _default.VALIDATION_FRACTION, seed=_default.SEED)
-    val_e, tr_e = np.asarray(val.euler, np.float32), np.asarray(tr.euler, np.float32)
+    poses = bp.load_mocap(str(mocap), fps=pinfo["data"]["fps"], progress=False)
+    # the prior's own validation clips (recorded in its provenance) are the held-out poses
+    names = np.asarray(poses.clip_names)[np.asarray(poses.clip)]
+    held = np.isin(names, pinfo["data"]["validation_clips"])
+    euler = np.asarray(poses.euler, np.float32)
+    val_e, tr_e = euler[held], euler[~held]
     n_p = min(n_pose, val_e.shape[0])
     ref = val_e[rng.choice(val_e.shape[0], n_p, replace=False)]
     train_ref = tr_e[rng.choice(tr_e.shape[0], min(n_pose, tr_e.shape[0]), replace=False)]
