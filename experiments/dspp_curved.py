@@ -157,6 +157,9 @@ def run(args) -> dict:
         P = f"{pop_name}"
         metrics[f"{P}_n_train"], metrics[f"{P}_n_test"] = len(tr), len(te)
         metrics[f"{P}_test_height_range_m"] = [float(_height(te).min()), float(_height(te).max())]
+        h_all = _height(x)
+        metrics[f"{P}_height_range_m"] = [float(h_all.min()), float(h_all.max())]
+        metrics[f"{P}_age_range_years"] = [float(years.min()), float(years.max())]
         # real test bodies' distance to their nearest training body: the reference for "resembles"
         ref_nn = _nearest(te, tr)
         q95 = float(np.quantile(ref_nn, 0.95))
