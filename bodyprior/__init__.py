@@ -30,6 +30,7 @@ from ._bvh import Bvh as Bvh, read_bvh as read_bvh, write_bvh as write_bvh
 from ._geometry import (
     barycentric_points as barycentric_points,
     closest_points_on_mesh as closest_points_on_mesh,
+    mesh_ring_faces as mesh_ring_faces,
     cotangent_weights as cotangent_weights,
     cross_section_areas as cross_section_areas,
     dihedral_angles as dihedral_angles,
@@ -156,6 +157,7 @@ __all__ = [
     "BonePlacement",
     "Bvh",
     "closest_points_on_mesh",
+    "mesh_ring_faces",
     "contact_sheet",
     "cotangent_weights",
     "cross_section_areas",

@@ -598,21 +598,79 @@ def _face_search(
     return jax.lax.map(one, queries, batch_size=min(chunk_size, queries.shape[0]))
 
 
+@jax.jit
+def _candidate_search(
+    queries: Float[Array, "Q 3"], tri: Float[Array, "F 3 3"], candidates: Int[Array, "Q K"]
+) -> Int[Array, " Q"]:
+    t = tri[candidates]  # (Q, K, 3, 3)
+    q = queries[:, None]
+    bary = _closest_bary(q, t[..., 0, :], t[..., 1, :], t[..., 2, :])
+    pts = jnp.einsum("qkc,qkcd->qkd", bary, t)
+    best = jnp.argmin(jnp.sum((pts - q) ** 2, axis=-1), axis=1)
+    return jnp.take_along_axis(candidates, best[:, None], axis=1)[:, 0].astype(jnp.int32)
+
+
+def mesh_ring_faces(faces: Int[ArrayLike, "F 3"], n_vertices: int, rings: int) -> np.ndarray:
+    """The faces within `rings` edge-rings of every vertex (host, NumPy), for the `candidates` of
+    [`bodyprior.closest_points_on_mesh`][].
+
+    Ring 1 of vertex `i` is the faces incident to `i`; ring `r + 1` adds the faces incident to
+    any vertex of ring `r`. Rows are padded to the longest by repeating their first face.
+
+    **Arguments:** `faces (F, 3)`; `n_vertices` `V`; `rings >= 1`.
+
+    **Returns:** `(V, K)` int32 face indices (an isolated vertex gets face 0).
+    """
+    import scipy.sparse as sp
+
+    f = np.asarray(faces)
+    check_array(f, "faces", (None, 3), integer=True)
+    n_vertices = check_positive_int(n_vertices, "n_vertices")
+    rings = check_positive_int(rings, "rings")
+    if f.size and (f.min() < 0 or f.max() >= n_vertices):
+        raise ValueError(f"`faces` must index `n_vertices` = {n_vertices} vertices.")
+    nf = f.shape[0]
+    inc = sp.csr_matrix(
+        (np.ones(3 * nf, bool), (f.reshape(-1), np.repeat(np.arange(nf), 3))),
+        shape=(n_vertices, nf),
+    )  # vertex x face incidence
+    reach = inc.astype(np.int32)
+    vf = (inc @ inc.T).astype(bool).astype(np.int32)  # vertices sharing a face (incl. self)
+    for _ in range(rings - 1):
+        reach = (vf @ reach).astype(bool).astype(np.int32)
+    reach = reach.tocsr()
+    reach.sort_indices()
+    counts = np.diff(reach.indptr)
+    out = np.zeros((n_vertices, max(int(counts.max(initial=0)), 1)), np.int32)
+    for v in range(n_vertices):
+        row = reach.indices[reach.indptr[v] : reach.indptr[v + 1]]
+        if row.size:
+            out[v, : row.size] = row
+            out[v, row.size :] = row[0]
+    return out
+
+
 def closest_points_on_mesh(
     queries: Float[ArrayLike, "Q 3"],
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
     *,
     chunk_size: int = 64,
+    candidates: Int[ArrayLike, "Q K"] | None = None,
 ) -> tuple[Float[Array, "Q 3"], Int[Array, " Q"], Float[Array, "Q 3"], Float[Array, " Q"]]:
-    """Closest point on a triangle mesh for every query (exact brute force over all faces).
+    """Closest point on a triangle mesh for every query (exact brute force over all faces, or
+    over each query's own candidate faces).
 
     For each query the exact closest point on every triangle is computed (Ericson's branch-free
     Voronoi-region routine) and the nearest one is kept. Cost `O(Q · F)` time; memory `O(chunk_size
     · F)`: queries are processed `chunk_size` at a time with `jax.lax.map(...,
-    batch_size=chunk_size)`. The search is not differentiated; the outputs are then recomputed for
-    the chosen faces, so points, barycentrics and distances are differentiable in `queries` and
-    `vertices` (for a fixed face assignment). Jittable (all shapes static).
+    batch_size=chunk_size)`. With `candidates` only the `K` faces listed for each query are
+    searched (`O(Q · K)`, no chunking): exact when the closest face is among them, e.g. for a
+    query near vertex `i` of a mesh of the same topology and
+    [`bodyprior.mesh_ring_faces`][]`(faces, V, rings)[i]`. The search is not differentiated; the
+    outputs are then recomputed for the chosen faces, so points, barycentrics and distances are
+    differentiable in `queries` and `vertices` (for a fixed face assignment). Jittable (all
+    shapes static).
 
     **Arguments:**
 
@@ -620,6 +678,8 @@ def closest_points_on_mesh(
     - `vertices`: `(V, 3)` vertex positions of one mesh.
     - `faces`: `(F, 3)` integer vertex indices, `F >= 1`.
     - `chunk_size`: number of queries per block (static).
+    - `candidates`: optional `(Q, K)` face indices in `[0, F)` to search per query (repeats allowed,
+      as padding).
 
     **Returns:** `(points, face_idx, bary, distances)`: `(Q, 3)` closest points on the surface,
     `(Q,)` int32 index of the face they lie on (the lowest index on ties), `(Q, 3)` barycentric
@@ -639,7 +699,19 @@ def closest_points_on_mesh(
         z = jnp.zeros((0, 3), dtype)
         return z, jnp.zeros((0,), jnp.int32), z, jnp.zeros((0,), dtype)
     tri = jax.lax.stop_gradient(vertices)[faces]
-    fidx = _face_search(jax.lax.stop_gradient(queries), tri, chunk_size)
+    if candidates is None:
+        fidx = _face_search(jax.lax.stop_gradient(queries), tri, chunk_size)
+    else:
+        if not is_tracer(candidates):
+            check_array(candidates, "candidates", (nq, None), integer=True)
+            c = np.asarray(candidates)
+            if c.shape[1] == 0 or c.min() < 0 or c.max() >= faces.shape[0]:
+                raise ValueError(
+                    f"`candidates` must hold at least one face index in [0, {faces.shape[0]}) "
+                    f"per query, got shape {c.shape} and range [{c.min(initial=0)}, "
+                    f"{c.max(initial=0)}]."
+                )
+        fidx = _candidate_search(jax.lax.stop_gradient(queries), tri, jnp.asarray(candidates))
     t = vertices[faces[fidx]]
     bary = _closest_bary(queries, t[:, 0], t[:, 1], t[:, 2])
     pts = jnp.einsum("qc,qcd->qd", bary, t)

@@ -162,6 +162,11 @@ def main(argv=None):
         default="anchored",
         help="NRD preset of the S-SCAPE + NRD registrations (NRDConfig.preset)",
     )
+    ap.add_argument(
+        "--correspondence", choices=("first_accepted", "none"), default="first_accepted",
+        help="bootstrap(correspondence=...): re-sample later registrations at each scan's first "
+        "accepted one (default) or the paper's plain loop",
+    )  # fmt: skip
     ap.add_argument("--landmark-gate", type=float, default=1.1,
                     help="calibrate the gate's landmark test at this factor over the references "
                          "largest landmark RMS (0 = off)")  # fmt: skip
@@ -243,7 +248,8 @@ def main(argv=None):
     metrics["registration_config"] = {"fit": {"max_passes": size["fit_passes"], **FIT_PRIORS},
                                       "nrd": {"preset": args.nrd, "head_rule": False,
                                               "config": repr(nrd_config)},
-                                      "landmark_gate_factor": args.landmark_gate}  # fmt: skip
+                                      "landmark_gate_factor": args.landmark_gate,
+                                      "correspondence": args.correspondence}  # fmt: skip
 
     def register(model, s):
         return sscape.register_sscape_nrd(
@@ -261,6 +267,7 @@ def main(argv=None):
         res = sscape.bootstrap(
             init_model, boot_scans, tmpl, n_passes=size["n_passes"], n_components=max(comps),
             gate=gate, register=register, callback=on_pass, progress=progress,
+            correspondence=args.correspondence,
         )  # fmt: skip
         with bp.atomic_open(ckpt, "wb") as f:
             pickle.dump(res, f)

@@ -414,3 +414,42 @@ def test_validation_errors():
     # Tracers only get shape checks (no NaN check), and still work under jit.
     out = jax.jit(lambda x: G.face_areas(x, ICO.faces))(jnp.asarray(v))
     assert out.shape == (80,)
+
+
+def test_mesh_ring_faces_and_candidate_search_match_brute_force():
+    v = deformed_ico(3, 0.02)  # a sphere, slightly rough (a rough one can fold: then a distant
+    f = np.asarray(ICO.faces)  # face can be the closest)
+    nv = v.shape[0]
+    r1 = G.mesh_ring_faces(f, nv, 1)
+    for i in range(nv):  # ring 1 is exactly the incident faces (padding repeats a member)
+        assert set(r1[i]) == set(np.flatnonzero((f == i).any(1)))
+    r2 = G.mesh_ring_faces(f, nv, 2)
+    assert r2.shape[1] > r1.shape[1] and all(set(r1[i]) <= set(r2[i]) for i in range(nv))
+    # queries near each vertex (a slide of a fraction of an edge): ring-2 candidates give the
+    # exact brute-force closest points; a wrong candidate set (ring 1 of another vertex) does not
+    rng = np.random.default_rng(0)
+    q = v + 0.05 * rng.standard_normal(v.shape)
+    ref_pts, _, _, ref_d = G.closest_points_on_mesh(q, v, f)
+    pts, fidx, bary, d = G.closest_points_on_mesh(q, v, f, candidates=r2)
+    np.testing.assert_allclose(d, ref_d, atol=1e-12)
+    np.testing.assert_allclose(pts, ref_pts, atol=1e-12)
+    assert all(fidx[i] in r2[i] for i in range(nv))
+    np.testing.assert_allclose(G.barycentric_points(v, f, fidx, bary), pts, atol=1e-12)
+    wrong = np.roll(r1, 7, axis=0)
+    assert float(jnp.max(G.closest_points_on_mesh(q, v, f, candidates=wrong)[3] - ref_d)) > 0.05
+    # jit/vmap over meshes with the candidates as a traced argument
+    jv = jax.jit(jax.vmap(lambda x, y: G.closest_points_on_mesh(x, y, f, candidates=r2)[3]))
+    np.testing.assert_allclose(jv(q[None], v[None])[0], ref_d, atol=1e-12)
+
+
+@pytest.mark.bad_input
+def test_candidate_search_bad_input():
+    v, f = deformed_ico(0, 0.0), np.asarray(ICO.faces)
+    with pytest.raises(ValueError, match="candidates"):
+        G.closest_points_on_mesh(v[:3], v, f, candidates=np.zeros((4, 2), np.int32))
+    with pytest.raises(ValueError, match="candidates"):
+        G.closest_points_on_mesh(v[:3], v, f, candidates=np.full((3, 2), len(f), np.int32))
+    with pytest.raises(ValueError, match="rings"):
+        G.mesh_ring_faces(f, v.shape[0], 0)
+    with pytest.raises(ValueError, match="n_vertices"):
+        G.mesh_ring_faces(f, 3, 1)

@@ -35,6 +35,7 @@ import jax
 import jax.random as jr
 import numpy as np
 
+from ..registration._template import _source_checksums
 from ._checkpoint import load_prior, save_prior
 from ._nets import DSPPConfig, PosePrior, ShapePrior
 
@@ -86,12 +87,6 @@ def default_pose_prior(*, return_info: bool = False) -> PosePrior | tuple[PosePr
 
     **Raises:** `ValueError` if the file is missing or corrupted."""
     return _load("pose", return_info)
-
-
-def _source_checksums() -> dict:
-    from ..registration._template import _source_checksums as sc
-
-    return sc()
 
 
 def _bvh_checksums(root: Path) -> dict:

@@ -40,12 +40,15 @@ import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
+from .._geometry import closest_points_on_mesh, mesh_ring_faces
 from .._store import register_type
+from .._validate import check_positive_int
 from ..registration._evaluate import fitting_error_batch
 from ..registration._nrd import _landmark_map
 from ..registration._template import RegistrationTemplate
@@ -306,8 +309,6 @@ def register_sscape_nrd(
 
     **Returns:** a `Registration` `(vertices, poses, similarities)`.
     """
-    import jax
-
     from ..registration._nrd import NRDConfig, nrd, prepare_nrd
     from ._fit import FitConfig, fit_sscape_batch
 
@@ -352,6 +353,16 @@ class BootstrapResult(NamedTuple):
         return [p.n_accepted for p in self.passes]
 
 
+def _resampler(faces, cand):
+    """`(ref (N, V, 3), verts (N, V, 3)) -> (N, V, 3)`: the closest points on each `verts` surface
+    to its `ref` vertices, over the candidate faces `cand` of each vertex (jitted once)."""
+
+    def one(ref, verts):
+        return closest_points_on_mesh(ref, verts, faces, candidates=cand)[0]
+
+    return jax.jit(jax.vmap(one))
+
+
 def _learn_from(meshes, tmpl, n_components):
     k = int(min(n_components, meshes.shape[0] - 1))
     return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
@@ -370,6 +381,8 @@ def bootstrap(
     nrd_config=None,
     progress: bool = True,
     callback: Callable[[int, BootstrapPass], None] | None = None,
+    correspondence: str = "first_accepted",
+    rings: int = 3,
 ) -> BootstrapResult:
     """Bootstrapped registration (paper §3.3, §4.5): `n_passes` rounds of "register every scan from
     the current space, gate, learn a new space from the accepted registrations".
@@ -379,6 +392,17 @@ def bootstrap(
     `min(n_components, n_accepted - 1)` components). If fewer than 2 registrations pass, the
     previous space is kept. Every scan is registered in every pass (rejected ones get another
     chance from the better space, as in the paper).
+
+    **Correspondence.** Each pass's space has a different mean, and registering from it slides the
+    template along every body's surface a little (a drift the fitting error cannot see, as it
+    measures only distances to the scan). Over passes the slides accumulate: with the paper's
+    plain loop (`correspondence="none"`) the true error of 20 simulated scans rose 6.53 -> 7.19 ->
+    7.71 -> 8.04 mm over 4 passes, nearly all of it tangential, while the distance to the scans
+    stayed the same. With `correspondence="first_accepted"` (default) a scan's first accepted
+    registration fixes its correspondence: each later registration of the scan is re-sampled at
+    the closest points on its surface to that registration's vertices (candidate faces within
+    `rings` edge-rings of each vertex, [`bodyprior.mesh_ring_faces`][]). The surfaces keep
+    improving, the correspondence stops sliding (docs/results_sscape.md).
 
     **Arguments:**
 
@@ -392,6 +416,10 @@ def bootstrap(
       [`bodyprior.sscape.register_sscape_nrd`][] with `fit_config`/`nrd_config`.
     - `progress`: progress bars.
     - `callback`: called as `callback(r, pass)` after each pass (e.g. to log or checkpoint).
+    - `correspondence`: `"first_accepted"` (re-sample later registrations onto the scan's first
+      accepted one, above) or `"none"` (the paper's loop).
+    - `rings`: edge-rings of candidate faces of the re-sampling (the largest slide it can undo is
+      about `rings` edge lengths: 3 rings ~ 4 cm on the decimated template).
 
     **Returns:** a [`bodyprior.sscape.BootstrapResult`][] (`accepted_per_pass` is the paper's list).
     """
@@ -404,6 +432,11 @@ def bootstrap(
             f"`init_model` has {init_model.n_vertices} vertices, the template "
             f"{template.n_vertices}."
         )
+    if correspondence not in ("first_accepted", "none"):
+        raise ValueError(
+            f"`correspondence` must be 'first_accepted' or 'none', got {correspondence!r}."
+        )
+    rings = check_positive_int(rings, "rings")
     if register is None:
 
         def register(model, s):
@@ -413,9 +446,26 @@ def bootstrap(
 
     model = init_model
     passes = []
+    anchor, has = None, None  # (N, V, 3) each scan's first accepted registration; rows set: has
+    if correspondence == "first_accepted":
+        cand = jnp.asarray(mesh_ring_faces(template.faces, template.n_vertices, rings))
+        resample = _resampler(jnp.asarray(template.faces), cand)
     for r in range(n_passes):  # host loop over passes; each stage is a jitted batched call
         reg = register(model, scans)
+        if anchor is not None and has.any():
+            v = np.asarray(reg.vertices).copy()
+            v[has] = np.asarray(resample(jnp.asarray(anchor[has]), jnp.asarray(v[has])))
+            reg = reg._replace(vertices=v)
         g = registration_gate(reg.vertices, scans, template, config=gate)
+        if correspondence == "first_accepted":
+            acc = np.asarray(g.accepted, bool)
+            if anchor is None:
+                anchor = np.array(reg.vertices, copy=True)
+                has = acc.copy()
+            else:
+                new = acc & ~has
+                anchor[new] = np.asarray(reg.vertices)[new]
+                has |= new
         p = BootstrapPass(model, reg, g, int(g.accepted.sum()))
         passes.append(p)
         if callback is not None:

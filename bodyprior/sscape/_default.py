@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..registration._template import _source_checksums
 from ._learn import learn
 from ._model import truncate
 from ._serialize import load_model, save_model
@@ -42,12 +43,6 @@ def space_path() -> str:
     from ..assets import asset_path
 
     return os.path.join(os.path.dirname(asset_path()), SPACE_NAME)
-
-
-def _source_checksums() -> dict:
-    from ..registration._template import _source_checksums as sc
-
-    return sc()
 
 
 def default_space(n_components: int = 20, *, return_info: bool = False):

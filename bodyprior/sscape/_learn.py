@@ -423,7 +423,7 @@ def _generalization_kernel(flat, gram, js, train_idx, ms: tuple[int, ...], chunk
 _PROGRESS_BLOCK = 64
 
 
-def _blocked(fn, items: tuple[np.ndarray, ...], progress: bool, desc: str):
+def _blocked(fn, items: tuple[np.ndarray, ...], progress: bool, desc: str, unit: str):
     """`fn(*items)` in one call, or with `progress` in blocks of `_PROGRESS_BLOCK` leading rows
     (the last block padded by repeating its last row, dropped again) under a tqdm bar; the rows are
     independent, so the result is the same."""
@@ -433,7 +433,7 @@ def _blocked(fn, items: tuple[np.ndarray, ...], progress: bool, desc: str):
     from tqdm.auto import tqdm
 
     outs = []
-    with tqdm(total=n, desc=desc, unit="mesh" if desc != "specificity" else "sample") as bar:
+    with tqdm(total=n, desc=desc, unit=unit) as bar:
         for lo in range(0, n, _PROGRESS_BLOCK):
             rows = np.minimum(np.arange(lo, lo + _PROGRESS_BLOCK), n - 1)
             outs.append(fn(*(a[rows] for a in items))[: min(_PROGRESS_BLOCK, n - lo)])
@@ -503,6 +503,7 @@ def generalization(
         (np.arange(n, dtype=np.int32), np.asarray(idx, dtype=np.int32)),
         bool(progress),
         "generalization",
+        "mesh",
     )
     mean = errors.mean(0)
     std = errors.std(0, ddof=1) if n > 1 else jnp.zeros_like(mean)
@@ -592,6 +593,7 @@ def specificity(
         (np.asarray(samples),),
         bool(progress),
         "specificity",
+        "sample",
     )
     mean = dist.mean(0)
     var = dist.var(0)
