@@ -44,7 +44,16 @@ def test_stored_notebooks_have_outputs():
         assert not errors, f"{name}: stored outputs contain errors"
 
 
-@pytest.mark.parametrize("name", _NOTEBOOKS)
+# Two notebooks whose every step a faster test of the default suite already checks with assertions
+# run only with `-m slow` (CI time): register_scan (the CLI reproducing the library's registration:
+# tests/test_cli_jobs.py) and dspp_priors (the shipped priors' samples and the prior in a fit:
+# tests/test_dspp_default.py, tests/test_dspp_prior_fit.py). Their stored outputs are checked above.
+_SLOW = {"register_scan.ipynb", "dspp_priors.ipynb"}
+
+
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in _SLOW else n for n in _NOTEBOOKS]
+)
 def test_notebook_runs(name, tmp_path):
     nb = _executor().execute(_NB_DIR / name, cwd=str(tmp_path), timeout=600)
     code = [c for c in nb.cells if c.cell_type == "code" and c.source.strip()]

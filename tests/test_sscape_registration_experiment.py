@@ -20,7 +20,12 @@ def _load():
 def test_registration_experiment_tiny(tmp_path):
     exp = _load()
     out = tmp_path / "reg"
-    m = exp.main(["--tiny", "--out", str(out), "--seed", "0", "--no-progress"])
+    # --tiny with fewer bodies and 5 components (the smallest run that still exercises every stage;
+    # the suite's time is mostly compilation, which does not shrink with the sizes)
+    m = exp.main(
+        ["--tiny", "--components", "5", "--n-init", "10", "--n-train", "8", "--n-test", "2",
+         "--out", str(out), "--seed", "0", "--no-progress"]
+    )  # fmt: skip
     on_disk = json.loads((out / "metrics.json").read_text())
     assert on_disk["nrd_gt_error_mm_mean"] == pytest.approx(m["nrd_gt_error_mm_mean"])
     for key in (
@@ -51,9 +56,10 @@ def test_registration_experiment_tiny(tmp_path):
         meth["sscape_nrd_anchored"]["fit_error_mm_mean"] < meth["sscape_only"]["fit_error_mm_mean"]
     )
     assert 2.0 < m["truth_fit_error_mm_mean"] < 10.0
-    # A space learned from registrations generalizes (mm) and is specific, not wildly off.
-    assert 0.5 < m["generalization_mm_at_20"] < 30.0
-    assert 1.0 < m["specificity_mm_at_20"] < 60.0
+    # A space learned from registrations generalizes (mm) and is specific about as well as one
+    # learned from the true meshes of the same scans (keys say 20; the value is at --components)
+    assert 0.5 < m["generalization_mm_at_20"] < 1.2 * m["gt_space_generalization_mm_at_20"]
+    assert 1.0 < m["specificity_mm_at_20"] < 1.2 * m["gt_space_specificity_mm_at_20"]
     for name in (
         "cumulative_fit_20mm.png",
         "cumulative_gt_50mm.png",
