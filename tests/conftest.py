@@ -10,13 +10,6 @@ import os
 # One host device: batched entry points compile once per device, so extra host devices would only
 # multiply compile time here; multi-device runs are tested in their own processes.
 os.environ.setdefault("MPLBACKEND", "Agg")
-# Most of the suite's time is XLA compilation of small test programs: skip LLVM's expensive
-# optimisation passes (measured: -10 % on compile-bound test files; numerics unchanged). Set before
-# JAX starts its backend; subprocesses (experiments, notebooks, the CLI) inherit it.
-if "--xla_llvm_disable_expensive_passes" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + " --xla_llvm_disable_expensive_passes=true"
-    ).strip()
 
 import tempfile  # noqa: E402
 
