@@ -642,11 +642,10 @@ def mesh_ring_faces(faces: Int[ArrayLike, "F 3"], n_vertices: int, rings: int) -
     reach.sort_indices()
     counts = np.diff(reach.indptr)
     out = np.zeros((n_vertices, max(int(counts.max(initial=0)), 1)), np.int32)
-    for v in range(n_vertices):
-        row = reach.indices[reach.indptr[v] : reach.indptr[v + 1]]
-        if row.size:
-            out[v, : row.size] = row
-            out[v, row.size :] = row[0]
+    filled = counts > 0
+    out[filled] = reach.indices[reach.indptr[:-1][filled]][:, None]  # pad with the first face
+    rows = np.repeat(np.arange(n_vertices), counts)
+    out[rows, np.arange(reach.nnz) - np.repeat(reach.indptr[:-1], counts)] = reach.indices
     return out
 
 

@@ -446,26 +446,26 @@ def bootstrap(
 
     model = init_model
     passes = []
-    anchor, has = None, None  # (N, V, 3) each scan's first accepted registration; rows set: has
-    if correspondence == "first_accepted":
+    keep = correspondence == "first_accepted"
+    if keep:
         cand = jnp.asarray(mesh_ring_faces(template.faces, template.n_vertices, rings))
         resample = _resampler(jnp.asarray(template.faces), cand)
+        anchor, has = None, None  # (N, V, 3) each scan's first accepted registration; (N,) set
     for r in range(n_passes):  # host loop over passes; each stage is a jitted batched call
         reg = register(model, scans)
-        if anchor is not None and has.any():
-            v = np.asarray(reg.vertices).copy()
-            v[has] = np.asarray(resample(jnp.asarray(anchor[has]), jnp.asarray(v[has])))
-            reg = reg._replace(vertices=v)
-        g = registration_gate(reg.vertices, scans, template, config=gate)
-        if correspondence == "first_accepted":
-            acc = np.asarray(g.accepted, bool)
+        if keep:
+            v = np.asarray(reg.vertices)
             if anchor is None:
-                anchor = np.array(reg.vertices, copy=True)
-                has = acc.copy()
-            else:
-                new = acc & ~has
-                anchor[new] = np.asarray(reg.vertices)[new]
-                has |= new
+                anchor, has = v.copy(), np.zeros(v.shape[0], bool)
+            else:  # every row re-sampled (one compile), kept where the scan has an anchor
+                moved = np.asarray(resample(jnp.asarray(anchor), jnp.asarray(v)))
+                v = np.where(has[:, None, None], moved, v)
+                reg = reg._replace(vertices=v)
+        g = registration_gate(reg.vertices, scans, template, config=gate)
+        if keep:
+            new = np.asarray(g.accepted, bool) & ~has
+            anchor[new] = v[new]
+            has |= new
         p = BootstrapPass(model, reg, g, int(g.accepted.sum()))
         passes.append(p)
         if callback is not None:
