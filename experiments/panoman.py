@@ -13,9 +13,12 @@
    (C1 + 70 face points + 42 hand keypoints), C3 (1,000 random vertices; `--csets`): PanoMan
    (eq. 5), the baseline without the MLP (eq. 4), and the LBS and DQS models on the same shape
    space fitted to the same constraints (the SMPL stand-ins; neither is the test data's
-   generator). PanoMan starts from the RLA projection of the LBS fit's mesh; the paper's start,
-   β(θ_IK) → g, is measured as `panoman_mlp_init`. Per-vertex error vs ground truth (mean and max
-   per frame, averaged; mm) and Hausdorff distance / bbox diagonal.
+   generator). PanoMan starts from the LBS fit's mesh with the β of its RLA projection
+   (`fit_panoman`'s default with `init_mesh`); `panoman_decoded_start` starts from g of that
+   projection instead, and the paper's start, β(θ_IK) → g, is measured as `panoman_mlp_init`.
+   Per-vertex error vs ground truth (mean and max per frame, averaged; mm), Hausdorff distance /
+   bbox diagonal, and 95 % bootstrap intervals over frames of the means and of the paired
+   differences PanoMan − LBS and PanoMan − baseline (`recon_{set}_ci95`).
 5. **Twist** (Figs. 13–14, quantitative): a left-wrist twist of 180° on a held-out identity, ground
    truth by the twist generator; LBS and DQS posed with the true pose, PanoMan fitted to 31 joints
    + 5 forearm/hand markers (+ 5 torso points); minimum forearm cross-section area ratio and
@@ -84,11 +87,38 @@ def _err_mm(v, gt):
     return float(d.mean()), float(d.max())
 
 
+def _bootstrap_ci(x, rng, n=2000):
+    """Mean of the per-frame values `x` and its 95 % percentile-bootstrap interval over frames."""
+    x = np.asarray(x, np.float64)
+    means = x[rng.integers(0, x.size, (n, x.size))].mean(1)
+    return [float(x.mean()), float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))]
+
+
 def _record(rec, cs, name, v, gt, faces):
     """Per-vertex mean and max error (mm) and Hausdorff / bbox diagonal of one reconstruction."""
     m, x = _err_mm(v, gt)
     h = bp.hausdorff_distance(np.asarray(v), gt, faces_a=faces, faces_b=faces, relative=True)
     rec.setdefault(cs, {}).setdefault(name, []).append((m, x, h))
+
+
+def correction_residuals(model, data, idx, top) -> dict:
+    """What the correction MLP explains on body meshes `idx` of `data` (held-out or training):
+    each mesh's RLA relative to `B_S(α)` of its identity, projected on the components (β), and
+    the RMS over the correction's edges of the residual of eq. 4 (no MLP) and of eq. 5."""
+    e = np.asarray(model.correction_edges)
+    out = {"without": [], "with": []}
+    for i in idx:
+        rest = np.asarray(data.rest[int(data.identity[i])], np.float64)
+        alpha = model.shape_coefficients(rest)
+        v = np.asarray(data.vertices[i], np.float64)
+        x = pm.rla_encode(jnp.asarray(v), model.shape(jnp.asarray(alpha)), top)
+        bl, ba = model.motion_coefficients(v, alpha)
+        for name, corr in (("without", False), ("with", True)):
+            t = pm.model_targets(model, bl, ba, correct=corr)
+            r = np.concatenate([np.asarray(x.lengths)[e] - np.asarray(t.lengths)[e],
+                                np.asarray(x.angles)[e] - np.asarray(t.angles)[e]])  # fmt: skip
+            out[name].append(float(np.sqrt(np.mean(r**2))))
+    return {k: float(np.mean(v)) for k, v in out.items()}
 
 
 def constraint_sets(body, hand_body, vm, rest, rng) -> dict:
@@ -312,6 +342,14 @@ def main(argv=None) -> dict:
         row["vertex_err_max_mm"] = float(np.mean([e[1] for e in errs]))
         fig7[int(K)] = row
     metrics["fig7_body"] = fig7
+    # the correction MLP on held-out and on (as many) training body meshes: RLA residual RMS of
+    # the projection without and with it (its training loss is on the training meshes)
+    if model.correction is not None:
+        tr = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // max(len(tb), 1))][: len(tb)]
+        metrics["correction_residual_rms"] = {
+            "test": correction_residuals(model, test, tb, top),
+            "train": correction_residuals(model, data, tr, top),
+        }
     metrics["fig7_body_vertex_err_mm_at_k"] = {k: v["vertex_err_mean_mm"] for k, v in fig7.items()}
     T["fig7_s"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -362,10 +400,14 @@ def main(argv=None) -> dict:
             bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
             v_mlp = pm.evaluate(model, np.asarray(alpha0), (bl, ba), align_to=v_ik).value.vertices
             _record(rec, cs, "panoman_mlp_init", v_mlp, gt, faces)
-            for name, corr in (("panoman", True), ("baseline", False)):
+            # the library's start: the IK mesh itself with its RLA projection's β; the decoded
+            # start (g of that projection) is the paper's kind of start, kept for comparison
+            for name, corr, start in (("panoman", True, "mesh"), ("baseline", False, "mesh"),
+                                      ("panoman_decoded_start", True, "decoded")):  # fmt: skip
                 fit = pm.fit_panoman(
                     model, cp, init=(np.asarray(alpha0), np.asarray(bl), np.asarray(ba)),
                     init_mesh=v_ik, correct=corr, solver=solver, max_steps=cfg["fit_steps"],
+                    start=start,
                 )  # fmt: skip
                 _record(rec, cs, name, fit.value.vertices, gt, faces)
                 _record(rec, cs, name + "_init", fit.value.init_vertices, gt, faces)
@@ -383,6 +425,13 @@ def main(argv=None) -> dict:
             metrics[f"recon_{cs}_max_mm_{name}"] = float(v[:, 1].mean())
             metrics[f"recon_{cs}_hausdorff_bbox_{name}"] = float(v[:, 2].mean())
     metrics["recon_frames"] = int(len(tb))
+    rng_ci = np.random.default_rng(a.seed)
+    for cs, rows in rec.items():
+        mean = {name: np.asarray(v)[:, 0] for name, v in rows.items()}
+        ci = {name: _bootstrap_ci(x, rng_ci) for name, x in mean.items()}
+        for other in ("lbs", "baseline"):
+            ci[f"panoman_minus_{other}"] = _bootstrap_ci(mean["panoman"] - mean[other], rng_ci)
+        metrics[f"recon_{cs}_ci95"] = ci
     metrics["table1"] = {k: float(np.mean([s[k] for s in stages])) for k in stages[0]}
     metrics["fit_total_s_mean"] = float(
         np.mean([sum(v for k, v in s.items() if k.endswith("_s")) for s in stages])

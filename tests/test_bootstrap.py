@@ -120,14 +120,40 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
         return Registration(v, np.zeros((len(bodies), 4, 3)), None)
 
     init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, rig=tmpl.rig)
-    res = bootstrap(init, scans, tmpl, n_passes=4, n_components=10, register=register)
+    # the paper's loop: every pass re-registers and re-learns from every accepted scan
+    res = bootstrap(init, scans, tmpl, n_passes=4, n_components=10, register=register,
+                    correspondence="none")  # fmt: skip
     assert res.accepted_per_pass == [6, 12, 12, 12]
     assert seen == [1, 5, 10, 10]  # each pass registers from the space of the previous one
     assert res.model.n_components == 10
     for p in res.passes:
         assert p.gate.accepted.shape == (12,)
+    # the default ("frozen"): accepted registrations are final, and the loop stops at its fixed
+    # point, here once every scan is accepted
+    seen.clear()
+    res = bootstrap(init, scans, tmpl, n_passes=4, n_components=10, register=register)
+    assert res.accepted_per_pass == [6, 12] and seen == [1, 5]
+    first, second = (p.registration.vertices for p in res.passes)
+    np.testing.assert_array_equal(second[:6], first[:6])  # kept, not re-registered
+    assert not np.array_equal(second[6:], first[6:])
+    assert res.model.n_components == 10  # learned from all 12
     with pytest.raises(ValueError, match="n_passes"):
         bootstrap(init, scans, tmpl, n_passes=0, register=register)
+
+
+def test_frozen_bootstrap_stops_when_no_scan_is_added(toy):
+    model, tmpl, bodies, scans = toy
+    calls = []
+
+    def register(m, s):  # scans 0-4 register well from any space, the others never do
+        calls.append(m.n_components)
+        v = bodies + np.where((np.arange(len(bodies)) < 5)[:, None, None], 0.0, 0.04)
+        return Registration(v, np.zeros((len(bodies), 4, 3)), None)
+
+    init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, rig=tmpl.rig)
+    res = bootstrap(init, scans, tmpl, n_passes=5, n_components=10, register=register)
+    # pass 1 (from the space of pass 0's 5 scans) adds none: pass 2 would repeat it
+    assert res.accepted_per_pass == [5, 5] and calls == [1, 4]
 
 
 def test_bootstrap_keeps_the_first_accepted_correspondence(toy):
@@ -147,11 +173,12 @@ def test_bootstrap_keeps_the_first_accepted_correspondence(toy):
 
     init = learn(jnp.asarray(bodies[:3]), tmpl.faces, n_components=2, rig=tmpl.rig)
     err = {}
-    for corr in ("none", "first_accepted"):
+    for corr in ("none", "first_accepted", "frozen"):
         calls.clear()
         res = bootstrap(init, scans, tmpl, n_passes=4, n_components=4, register=register,
                         correspondence=corr, progress=False)  # fmt: skip
-        assert res.accepted_per_pass == [12] * 4
+        # "frozen": every scan accepted by pass 0, nothing left to bootstrap
+        assert res.accepted_per_pass == [12] * (1 if corr == "frozen" else 4)
         err[corr] = [
             float(np.linalg.norm(p.registration.vertices - bodies, axis=-1).mean() * 1e3)
             for p in res.passes
@@ -160,8 +187,30 @@ def test_bootstrap_keeps_the_first_accepted_correspondence(toy):
     # slid mesh's faceting (its chords leave the true surface: measured 0.17, 0.31, 0.44 mm)
     assert err["none"][3] > 8.0 and err["none"][0] < 0.01, err
     assert max(err["first_accepted"]) < 0.6 and err["first_accepted"][3] < 0.05 * err["none"][3]
+    assert err["frozen"] == [err["none"][0]]
     with pytest.raises(ValueError, match="correspondence"):
         bootstrap(init, scans, tmpl, n_passes=1, register=register, correspondence="tangent")
+
+
+def test_observed_vertices_marks_scan_holes(toy):
+    _, tmpl, bodies, scans = toy
+    from bodyprior.sscape import observed_vertices
+
+    obs = observed_vertices(bodies, scans)
+    assert obs.shape == bodies.shape[:2] and obs.all()  # the toy scans cover the whole tube
+    # a hole: drop the scan points near one vertex of scan 0 (mask them as padding)
+    pts = np.asarray(scans.points[0])
+    hole = np.linalg.norm(pts - bodies[0, 100], axis=1) < 0.03
+    cut = scans.point_mask.at[0].set(jnp.asarray(~hole))
+    holed = Scan(scans.points, scans.normals, cut, scans.landmarks, scans.landmark_mask,
+                 scans.landmark_names)  # fmt: skip
+    obs = observed_vertices(bodies, holed)
+    assert not obs[0, 100] and obs[1:].all()
+    assert obs[0].sum() > 0.9 * obs.shape[1]
+    with pytest.raises(ValueError, match="radius"):
+        observed_vertices(bodies, scans, radius=0.0)
+    with pytest.raises(ValueError, match="scans"):
+        observed_vertices(bodies[:3], scans)
 
 
 def test_calibrate_gate_from_reference_registrations(toy):

@@ -36,6 +36,11 @@ def test_panoman_experiment_quick(tmp_path):
         for name in ("panoman", "baseline", "lbs", "dqs"):
             assert 0.0 < m[f"recon_{cs}_mean_mm_{name}"] < 300.0
             assert 0.0 < m[f"recon_{cs}_hausdorff_bbox_{name}"] < 0.5
+    for cs in ("c1", "c2", "c3"):  # bootstrap intervals over frames: mean inside its interval
+        for name, (mean, lo, hi) in m[f"recon_{cs}_ci95"].items():
+            assert lo <= mean <= hi, (cs, name)
+        ci = m[f"recon_{cs}_ci95"]
+        assert ci["panoman"][0] == pytest.approx(m[f"recon_{cs}_mean_mm_panoman"])
     # more constraints, less error (C2 ⊃ C1 for every method)
     assert m["recon_c2_mean_mm_lbs"] <= m["recon_c1_mean_mm_lbs"] + 1.0
     assert (out / "panoman_fig7_fig18.png").stat().st_size > 1000

@@ -155,13 +155,23 @@ def test_motion_coefficients_recover_a_model_mesh(trained):
     v0 = np.asarray(pm.evaluate(m, alpha, correct=False, align_to=v).value.vertices)
     e0 = np.linalg.norm(v0 - v, axis=1).mean()
     assert e2 < 0.5 * e0  # measured 0.32 (g is least squares: the projection is not exact)
-    # init_mesh: the fit starts from the projection (and is placed on the mesh)
+    # init_mesh, start="decoded": the fit starts from the projection (and is placed on the mesh)
     h = rng.choice(top.n_vertices, 50, replace=False)
-    fit = pm.fit_panoman(m, pm.shell_constraints(handles=(h, v[h])), init_mesh=v,
-                         init=(alpha, *m.neutral()), max_steps=1, blocks=("body",),
-                         correct=False)  # fmt: skip
+    cons = pm.shell_constraints(handles=(h, v[h]))
+    fit = pm.fit_panoman(m, cons, init_mesh=v, init=(alpha, *m.neutral()), max_steps=1,
+                         blocks=("body",), correct=False, start="decoded")  # fmt: skip
     e_init = np.linalg.norm(np.asarray(fit.value.init_vertices) - v, axis=1).mean()
     np.testing.assert_allclose(e_init, e2, rtol=1e-3)  # the same projection, placed on `v`
+    # the default with init_mesh: the solve starts from the mesh itself, with the projection's β
+    fit_m = pm.fit_panoman(m, cons, init_mesh=v, init=(alpha, *m.neutral()), max_steps=1,
+                           blocks=("body",), correct=False)  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(fit_m.value.init_vertices), v)
+    e_fit = np.linalg.norm(np.asarray(fit_m.value.vertices) - v, axis=1).mean()
+    assert e_fit < 0.5 * e2  # it starts on the truth; the shell pulls it only part way to g
+    with pytest.raises(ValueError, match="start"):
+        pm.fit_panoman(m, cons, start="mesh")
+    with pytest.raises(ValueError, match="start"):
+        pm.fit_panoman(m, cons, init_mesh=v, start="ik")
 
 
 @needs_data

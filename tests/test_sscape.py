@@ -311,6 +311,42 @@ def test_learn_recovers_subspace_and_variances(model, getkey):
     np.testing.assert_allclose(full.explained_variance[5:], 0, atol=1e-10)
 
 
+def test_learn_with_missing_data_recovers_the_space(model, getkey):
+    # meshes of the model's 5-D space with a block of vertices per mesh replaced by junk (what a
+    # fitter's prior fills in over a scan hole): PCA on every vertex learns the junk, PCA with
+    # missing data (EM over the unobserved vertices) recovers the space from the observed ones
+    n, v = 40, model.n_vertices
+    meshes, _ = _low_rank_meshes(model, getkey(), n=n, rigid=False)
+    rng = np.random.default_rng(0)
+    observed = np.ones((n, v), bool)
+    for i in range(n):
+        start = rng.integers(0, v - v // 5)
+        observed[i, start : start + v // 5] = False  # a fifth of the mesh unseen
+    junk = np.where(observed[..., None], np.asarray(meshes), rng.normal(0, 0.02, (n, v, 3)))
+    plain = learn(junk, model.faces, n_components=5, align=False)
+    em = learn(junk, model.faces, n_components=5, align=False, observed=observed)
+    assert _principal_angles(plain.basis, model.basis).max() > 0.1
+    assert _principal_angles(em.basis, model.basis).max() < 1e-4
+    np.testing.assert_allclose(em.mean, np.asarray(meshes).mean(0), atol=1e-6)
+
+
+@pytest.mark.bad_input
+def test_learn_with_missing_data_bad_input(model, getkey):
+    n, v = 6, model.n_vertices
+    junk, _ = _low_rank_meshes(model, getkey(), n=n, rigid=False)
+    observed = np.ones((n, v), bool)
+    with pytest.raises(ValueError, match="n_components"):
+        learn(junk, model.faces, align=False, observed=observed)
+    with pytest.raises(ValueError, match="observed"):
+        learn(junk, model.faces, n_components=5, observed=observed[:, :10])
+    with pytest.raises(ValueError, match="observed"):
+        learn(junk, model.faces, n_components=5, observed=observed.astype(float))
+    none_seen = observed.copy()
+    none_seen[:, 0] = False
+    with pytest.raises(ValueError, match="observed in no mesh"):
+        learn(junk, model.faces, n_components=5, observed=none_seen)
+
+
 def test_learn_explained_variance_selection(model, getkey):
     meshes, _ = _low_rank_meshes(model, getkey(), n=30, rigid=False)
     full = learn(meshes, model.faces, align=False)

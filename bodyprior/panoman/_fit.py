@@ -284,6 +284,7 @@ def fit_panoman(
     align_to: Float[ArrayLike, "V 3"] | None = None,
     cg_rtol: float = 1e-3,
     cg_max_steps: int = 300,
+    start: str | None = None,
 ) -> Solution:
     """Reconstructs a full body from sparse constraints (paper §5; module docstring).
 
@@ -312,6 +313,13 @@ def fit_panoman(
       ([`bodyprior.panoman.shell_solve`][]). Inexact steps: on held-out C1 frames (decimated
       mesh, 5 iterations per block) `1e-3` took 28 s instead of 69 s at `1e-8` with 12.6 / 11.7 mm
       instead of 13.8 / 11.1 mm; `1e-2` stalled (13.9 / 14.1 mm).
+    - `start`: the vertices the shell solve starts from: `"decoded"` (the paper: g of the start
+      parameters, placed on `align_to`) or `"mesh"` (`init_mesh` itself, with the parameters of
+      its projection; needs `init_mesh`). Default: `"mesh"` when `init_mesh` is given, else
+      `"decoded"`. From the IK mesh of held-out C1 frames (decimated mesh, K = 150, 5 iterations
+      per block) the fits from the mesh ended at 12.0 / 11.5 / 20.1 / 13.8 mm where the decoded
+      start's ended at 11.3 / 18.7 / 21.6 / 23.1 mm (its decode is 30–45 mm off the truth, the
+      IK mesh 14–22 mm; docs/results_panoman.md).
 
     **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.PanoManFit`][] and `stats`:
     per block `steps` (LM iterations), `cg_steps` (inner PCG iterations, all LM iterations),
@@ -323,6 +331,12 @@ def fit_panoman(
     for b in blocks:
         if b not in PARTS:
             raise ValueError(f"`blocks` entries must be in {PARTS}, got {b!r}.")
+    if start is None:
+        start = "decoded" if init_mesh is None else "mesh"
+    if start not in ("decoded", "mesh"):
+        raise ValueError(f"`start` must be 'decoded' or 'mesh', got {start!r}.")
+    if start == "mesh" and init_mesh is None:
+        raise ValueError("`start='mesh'` needs `init_mesh` (V, 3).")
     t0 = time.perf_counter()
     if init is not None:
         alpha, bl, ba = (jnp.asarray(x, jnp.float64) for x in init)
@@ -345,9 +359,12 @@ def fit_panoman(
         bl, ba = (jnp.asarray(x) for x in model.motion_coefficients(init_mesh, np.asarray(alpha)))
         if align_to is None:
             align_to = init_mesh
-    align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
-    dec = _evaluate_jit(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
-    V = dec.value.vertices
+    if start == "decoded":
+        align = None if align_to is None else jnp.asarray(align_to, jnp.float64)
+        dec = _evaluate_jit(model, alpha, bl, ba, jnp.asarray(1.0 if correct else 0.0), align)
+        V = dec.value.vertices
+    else:
+        V = jnp.asarray(init_mesh, jnp.float64)
     V_init = V
     stats = {"init_s": time.perf_counter() - t0, "blocks": []}
     if solver is None:

@@ -28,6 +28,9 @@ from ._bootstrap import (
     calibrate_gate as calibrate_gate,
 )
 from ._bootstrap import (
+    observed_vertices as observed_vertices,
+)
+from ._bootstrap import (
     register_sscape_nrd as register_sscape_nrd,
 )
 from ._bootstrap import (
@@ -207,6 +210,7 @@ __all__ = [
     "normalize_posture_nh_batch",
     "normalize_posture_wsx",
     "normalize_posture_wsx_batch",
+    "observed_vertices",
     "posture_rig",
     "PostureRig",
     "procrustes_align",

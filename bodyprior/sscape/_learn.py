@@ -17,12 +17,12 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._kinematics import Similarity, umeyama
 from .._rig import Rig
 from .._stats import pca_host as _pca_host
-from .._validate import check_array
+from .._validate import check_array, check_positive_int
 from ._model import SScapeModel
 
 # --------------------------------------------------------------------------------------------------
@@ -100,6 +100,13 @@ def procrustes_align(
     - `reference`: optional fixed target shape `(V, 3)`.
     - `scale`: also estimate a per-mesh scale.
     - `n_iter`: maximum number of GPA rounds.
+    - `observed`: optional `(N, V)` bool, the vertices each mesh actually measured (e.g. a
+      registration's vertices near scan points; the rest were filled in by the fitter's prior).
+      Then the space is PCA **with missing data**: after the alignment (on all vertices), the
+      unobserved coordinates are re-estimated `em_iterations` times from the current components
+      fitted to each mesh's observed coordinates (EM for PCA, Roweis 1998), so the components
+      and the mean come from measured geometry only; needs `n_components`. Every vertex must be
+      observed in at least one mesh.
     - `tol`: relative energy-change stopping tolerance.
 
     **Returns:** `(aligned, transforms)`: aligned meshes `(N, V, 3)` and a batched `Similarity`
@@ -170,6 +177,8 @@ def learn(
     align: bool = True,
     scale: bool = False,
     n_iter: int = 100,
+    observed: Bool[ArrayLike, "N V"] | None = None,
+    em_iterations: int = 50,
     **legacy_rig,
 ) -> SScapeModel:
     """Learns an S-SCAPE shape space from meshes in vertex correspondence.
@@ -194,6 +203,13 @@ def learn(
       `template.rig` of the registration template.
     - `align`: run Procrustes alignment first (rigid unless `scale=True`).
     - `n_iter`: maximum number of GPA rounds.
+    - `observed`: optional `(N, V)` bool, the vertices each mesh actually measured (e.g. a
+      registration's vertices near scan points; the rest were filled in by the fitter's prior).
+      Then the space is PCA **with missing data**: after the alignment (on all vertices), the
+      unobserved coordinates are re-estimated `em_iterations` times from the current components
+      fitted to each mesh's observed coordinates (EM for PCA, Roweis 1998), so the components
+      and the mean come from measured geometry only; needs `n_components`. Every vertex must be
+      observed in at least one mesh.
 
     The former rig keywords (`parents`, `joint_names`, `joint_regressor_indices`,
     `joint_regressor_weights`, `skin_indices`, `skin_weights`, all or none) still work, with a
@@ -263,6 +279,11 @@ def learn(
         t = jax.tree_util.tree_map(lambda a: a[0], t)
         x = np.asarray(jax.vmap(t.apply)(jnp.asarray(x)), dtype=np.float64)
 
+    if observed is not None:
+        if n_components is None:
+            raise ValueError("`observed` needs `n_components` (the rank of the EM fill).")
+        x = _em_fill(x, _check_observed(observed, n, v), int(min(n_components, n - 1)),
+                     check_positive_int(em_iterations, "em_iterations"))  # fmt: skip
     mu, comps, s = _pca_host(x.reshape(n, v * 3))
     var = s**2
     total = var.sum()
@@ -277,6 +298,46 @@ def learn(
         faces=faces,
         rig=rig,
     )
+
+
+def _check_observed(observed, n: int, v: int) -> np.ndarray:
+    check_array(observed, "observed", (n, v))
+    obs = np.asarray(observed)
+    if obs.dtype != np.bool_:
+        raise ValueError(f"`observed` must be bool, got dtype {obs.dtype}.")
+    if not obs.any(axis=0).all():
+        raise ValueError(
+            f"`observed`: {int((~obs.any(axis=0)).sum())} vertices are observed in no mesh."
+        )
+    return obs
+
+
+def _em_fill(x: np.ndarray, observed: np.ndarray, k: int, n_iter: int) -> np.ndarray:
+    """EM for PCA with missing data (Roweis 1998) on the host: `x` `(N, V, 3)` aligned meshes,
+    `observed` `(N, V)`; returns `x` with its unobserved vertices replaced by the rank-`k`
+    reconstruction from each mesh's observed coordinates, iterated `n_iter` times."""
+    n, v, _ = x.shape
+    X = x.reshape(n, v * 3).copy()
+    obs = np.repeat(observed, 3, axis=1)  # (N, 3V)
+    # start: each unobserved coordinate at its mean over the meshes that observed it, so the
+    # result depends on the observed coordinates only (not on what filled the holes)
+    col_mean = np.where(obs, X, 0.0).sum(0) / obs.sum(0)
+    X = np.where(obs, X, col_mean)
+    for _ in range(n_iter):
+        mu, comps, _ = _pca_host(X)
+        C = comps[:k]  # (k, 3V)
+        for i in range(n):
+            m = ~obs[i]
+            if not m.any():
+                continue
+            # least squares on the observed coordinates, by the normal equations: the rows of C
+            # are orthonormal, so C_o C_oᵀ = I − C_m C_mᵀ (k × k from the few missing ones)
+            Cm = C[:, m]
+            d = X[i] - mu
+            coef = np.linalg.solve(np.eye(k) - Cm @ Cm.T + 1e-12 * np.eye(k),
+                                   C @ d - Cm @ d[m])  # fmt: skip
+            X[i, m] = mu[m] + coef @ Cm
+    return X.reshape(n, v, 3)
 
 
 # --------------------------------------------------------------------------------------------------
