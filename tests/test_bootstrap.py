@@ -117,7 +117,8 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
         good = np.arange(len(bodies)) < 3 * (m.n_components + 1)
         noise = 0.001 * rng.standard_normal(bodies.shape)
         v = bodies + noise + np.where(good[:, None, None], 0.0, 0.04)
-        return Registration(v, np.zeros((len(bodies), 4, 3)), None)
+        coeffs = np.zeros((len(bodies), m.n_components))  # a row per scan, a column per component
+        return Registration(v, np.zeros((len(bodies), 4, 3)), None, coeffs=coeffs)
 
     init = learn(jnp.asarray(bodies[:2]), tmpl.faces, n_components=1, rig=tmpl.rig)
     # the paper's loop: every pass re-registers and re-learns from every accepted scan
@@ -135,6 +136,7 @@ def test_bootstrap_loop_grows_the_accepted_set(toy):
     assert res.accepted_per_pass == [6, 12] and seen == [1, 5]
     first, second = (p.registration.vertices for p in res.passes)
     np.testing.assert_array_equal(second[:6], first[:6])  # kept, not re-registered
+    assert res.passes[1].registration.coeffs is None  # kept rows came from another space
     assert not np.array_equal(second[6:], first[6:])
     assert res.model.n_components == 10  # learned from all 12
     with pytest.raises(ValueError, match="n_passes"):

@@ -319,7 +319,10 @@ def fit_panoman(
       `"decoded"`. From the IK mesh of held-out C1 frames (decimated mesh, K = 150, 5 iterations
       per block) the fits from the mesh ended at 12.0 / 11.5 / 20.1 / 13.8 mm where the decoded
       start's ended at 11.3 / 18.7 / 21.6 / 23.1 mm (its decode is 30–45 mm off the truth, the
-      IK mesh 14–22 mm; docs/results_panoman.md).
+      IK mesh 14–22 mm; docs/results_panoman.md). The mesh start inherits what skinning got
+      wrong where no constraint undoes it: from an LBS mesh with a 180° wrist twist the fit kept
+      the candy wrapper (0.21 of the forearm's cross-section, against 0.79 from β(θ) → g); to
+      undo such a collapse, start from `theta` or `init` instead.
 
     **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.PanoManFit`][] and `stats`:
     per block `steps` (LM iterations), `cg_steps` (inner PCG iterations, all LM iterations),

@@ -523,12 +523,23 @@ def bootstrap(
 
 
 def _take_rows(mask, a, b):
-    """Registration with the rows (scans) of `a` where `mask` `(N,)`, else those of `b`."""
+    """Registration with the rows (scans) of `a` where `mask` `(N,)`, else those of `b`. A field
+    whose rows differ in shape (`coeffs` of spaces with different component counts) or that one
+    side lacks becomes `None`."""
 
     def pick(x, y):
-        if x is None:
-            return y
+        if x is None or y is None:
+            return None
         x, y = np.asarray(x), np.asarray(y)
+        if x.shape != y.shape:
+            return None
         return np.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y)
 
-    return jax.tree_util.tree_map(pick, a, b, is_leaf=lambda x: x is None)
+    out = {}
+    for f in Registration._fields:
+        x, y = getattr(a, f), getattr(b, f)
+        if f == "similarities" and x is not None and y is not None:
+            out[f] = jax.tree_util.tree_map(pick, x, y)
+        else:
+            out[f] = pick(x, y)
+    return Registration(**out)
