@@ -100,13 +100,6 @@ def procrustes_align(
     - `reference`: optional fixed target shape `(V, 3)`.
     - `scale`: also estimate a per-mesh scale.
     - `n_iter`: maximum number of GPA rounds.
-    - `observed`: optional `(N, V)` bool, the vertices each mesh actually measured (e.g. a
-      registration's vertices near scan points; the rest were filled in by the fitter's prior).
-      Then the space is PCA **with missing data**: after the alignment (on all vertices), the
-      unobserved coordinates are re-estimated `em_iterations` times from the current components
-      fitted to each mesh's observed coordinates (EM for PCA, Roweis 1998), so the components
-      and the mean come from measured geometry only; needs `n_components`. Every vertex must be
-      observed in at least one mesh.
     - `tol`: relative energy-change stopping tolerance.
 
     **Returns:** `(aligned, transforms)`: aligned meshes `(N, V, 3)` and a batched `Similarity`
