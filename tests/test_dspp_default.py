@@ -42,7 +42,7 @@ def test_shipped_shape_prior_samples_plausible_bodies():
     prior, info = dspp.default_shape_prior(return_info=True)
     assert isinstance(prior, dspp.ShapePrior)
     assert info["data"]["n_bodies"] == _default.N_BODIES and info["select"] == "last"
-    assert info["sources"] == _default._source_checksums()
+    assert info["sources"] == _default.template_sources()
     vertex_map, _ = bp.load_decimated()
     x = np.asarray(dspp.sample(prior, 32, key=jr.PRNGKey(1)))
     assert x.shape == (32, len(np.asarray(vertex_map)), 3) and np.isfinite(x).all()

@@ -35,7 +35,7 @@ import jax
 import jax.random as jr
 import numpy as np
 
-from ..registration._template import _source_checksums
+from ..registration import template_sources
 from ._checkpoint import load_prior, save_prior
 from ._nets import DSPPConfig, PosePrior, ShapePrior
 
@@ -63,7 +63,7 @@ def _load(kind: str, return_info: bool):
     if not os.path.exists(path):
         raise ValueError(f"the shipped DSPP {kind} prior is missing at {path!r}; {_REBUILD}.")
     prior, info = load_prior(path, return_info=True)
-    if kind == "shape" and info.get("sources") != _source_checksums():
+    if kind == "shape" and info.get("sources") != template_sources():
         warnings.warn(
             f"{path!r} was trained on other default-body assets than the installed ones; "
             f"{_REBUILD}.",
@@ -163,7 +163,7 @@ def build_default_shape_prior(
         "training": _log_summary(sol, "last"),
         "jax_version": jax.__version__,
         "numpy_version": np.__version__,
-        "sources": _source_checksums(),
+        "sources": template_sources(),
         "build_seconds": round(time.perf_counter() - t0, 1),
     }
     save_prior(path, sol.value, info=info)

@@ -137,6 +137,9 @@ from ._template import (
 from ._template import (
     registration_template as registration_template,
 )
+from ._template import (
+    template_sources as template_sources,
+)
 
 __all__ = [
     "batch_map",
@@ -179,6 +182,7 @@ __all__ = [
     "simulate_depth_scan",
     "simulate_scan",
     "simulate_scans",
+    "template_sources",
     "THRESHOLDS_20MM",
     "THRESHOLDS_50MM",
     "write_lnd",

@@ -850,13 +850,9 @@ def _scan_arrays(scan, batched: bool):
 
 
 def _landmark_map(template: RegistrationTemplate, names) -> tuple[Array, Array]:
-    """Template vertex of each scan landmark (by name) and whether it may be used."""
-    where = {n: i for i, n in enumerate(template.landmark_names)}
-    lm_idx = np.asarray(template.landmark_index)
-    hand = np.asarray(template.hand_mask, bool)
-    v = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int32)
-    use = np.array([n in where for n in names], bool) & ~hand[v]  # γ = 0 on hand vertices
-    return jnp.asarray(v), jnp.asarray(use)
+    """Template vertex of each scan landmark (by name) and whether it may be used (γ = 0 on hand
+    vertices): [`bodyprior.registration.RegistrationTemplate.landmark_vertices`][]."""
+    return template.landmark_vertices(names)
 
 
 def _template_and_prep(template, config) -> tuple[RegistrationTemplate, NRDPrep]:

@@ -117,6 +117,17 @@ class RegistrationTemplate(RigHolder):
         """Restricts meshes in the full default-body topology to the template's vertices."""
         return jnp.asarray(full_vertices)[..., self.vertex_map, :]
 
+    def landmark_vertices(self, names) -> tuple[Int[Array, " L"], Bool[Array, " L"]]:
+        """Template vertex of each landmark of `names` (e.g. a scan's `landmark_names`) and
+        whether a fitter may use it: `(index (L,), usable (L,))`; unknown names and landmarks on
+        hand vertices are not usable (their index is 0)."""
+        where = {n: i for i, n in enumerate(self.landmark_names)}
+        lm_idx = np.asarray(self.landmark_index)
+        hand = np.asarray(self.hand_mask, bool)
+        v = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int32)
+        use = np.array([n in where for n in names], bool) & ~hand[v]
+        return jnp.asarray(v), jnp.asarray(use)
+
 
 @functools.lru_cache(maxsize=8)
 def _cached_build(rig: str, decimated: bool, n_fit: int, k: int, x64: bool) -> RegistrationTemplate:
@@ -275,8 +286,10 @@ def _variant(rig: str, decimated: bool, x64: bool) -> str:
     return f"{rig}.{'decimated' if decimated else 'full'}.{'x64' if x64 else 'x32'}"
 
 
-def _source_checksums() -> dict:
-    """Checksums of the assets a template is built from (the default body, the decimation)."""
+def template_sources() -> dict:
+    """Checksums of the embedded assets a registration template is built from (the default
+    body, the decimation): `{"source_checksum", "decimated_checksum"}`. Files derived from a
+    template (spaces, priors) record them so that a load can tell whether the body changed."""
     from ..assets import _checksum, asset_path
     from ..assets._decimate import load_decimated
 
@@ -333,7 +346,7 @@ def write_precomputed(path: str | None = None, log=print) -> dict:
         "phenotype_seed": 1234,
         "jax_version": jax.__version__,
         "numpy_version": np.__version__,
-        **_source_checksums(),
+        **template_sources(),
         "variants": variants,
     }
     arrays["checksum"] = np.array(_checksum(arrays))
@@ -369,7 +382,7 @@ def _read_precomputed(path: str) -> tuple[dict, dict] | None:
                          f"v{meta.get('format_version')}; {_REBUILD}.")
     if _checksum(arrays) != want:
         raise ValueError(f"{path!r} is corrupted (checksum mismatch); {_REBUILD}.")
-    src = _source_checksums()
+    src = template_sources()
     if any(meta.get(k) != v for k, v in src.items()):
         warnings.warn(f"{path!r} was built from other default-body/decimated assets; fitting the "
                       f"registration template instead (slow); {_REBUILD}.", stacklevel=3)

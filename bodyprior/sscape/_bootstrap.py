@@ -50,7 +50,6 @@ from .._geometry import closest_points_on_mesh, mesh_ring_faces
 from .._store import register_type
 from .._validate import check_array, check_positive_int
 from ..registration._evaluate import fitting_error_batch
-from ..registration._nrd import _landmark_map
 from ..registration._template import RegistrationTemplate
 from ._learn import learn
 from ._model import SScapeModel
@@ -217,7 +216,7 @@ def _landmark_rms(vertices: np.ndarray, scans, template: RegistrationTemplate) -
     """`(N,)` RMS distance (mm) of each registration's landmark vertices to its scan's landmarks
     (matched by name as NRD matches them; missing, unknown and hand landmarks left out; NaN
     without any)."""
-    v_idx, use = (np.asarray(a) for a in _landmark_map(template, scans.landmark_names))
+    v_idx, use = (np.asarray(a) for a in template.landmark_vertices(scans.landmark_names))
     mask = np.asarray(scans.landmark_mask, bool).reshape(vertices.shape[0], -1) & use[None]
     lms = np.asarray(scans.landmarks, np.float64).reshape(vertices.shape[0], -1, 3)
     d2 = np.sum((vertices[:, v_idx] - lms) ** 2, axis=-1)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..registration._template import _source_checksums
+from ..registration import template_sources
 from ._learn import learn
 from ._model import truncate
 from ._serialize import load_model, save_model
@@ -71,7 +71,7 @@ def default_space(n_components: int = 20, *, return_info: bool = False):
         raise ValueError(
             f"`n_components` must be in [1, {model.n_components}], got {n_components!r}."
         )
-    if info.get("sources") != _source_checksums():
+    if info.get("sources") != template_sources():
         warnings.warn(
             f"{path!r} was built from other default-body assets than the installed ones; "
             f"{_REBUILD}.",
@@ -117,7 +117,7 @@ def build_default_space(path: str | None = None, *, progress: bool = True, log=p
         "stddev_mm_first": [round(float(x) * 1e3, 3) for x in np.asarray(model.stddev)[:5]],
         "jax_version": jax.__version__,
         "numpy_version": np.__version__,
-        "sources": _source_checksums(),
+        "sources": template_sources(),
         "build_seconds": round(time.perf_counter() - t0, 1),
     }
     save_model(path, model, info=info)
