@@ -104,7 +104,7 @@ class Peer:
     def __init__(self, tmpl, scan, init, cfg: bp.registration.NRDConfig):
         self.cfg = cfg
         self.prep = internal.nrd_prepare(tmpl, 0)
-        lm_v, lm_use = internal.nrd_landmark_map(tmpl, scan.landmark_names)
+        lm_v, lm_use = tmpl.landmark_vertices(scan.landmark_names)
         pts, nrm, pm, lms, lmm = internal.nrd_scan_arrays(scan, batched=False)
         init = jnp.asarray(init)
         self.V = init.shape[0]

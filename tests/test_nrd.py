@@ -173,7 +173,7 @@ def test_hands_are_data_free(setup):
     prep = _nrd._prepare(tmpl, CFG.n_patches)
     centre = init.mean(0)
     ph = jnp.concatenate([(init - centre) * 1000, jnp.ones((init.shape[0], 1))], axis=1)
-    lm_v, lm_use = _nrd._landmark_map(tmpl, scan.landmark_names)
+    lm_v, lm_use = tmpl.landmark_vertices(scan.landmark_names)
     assert not bool(lm_use[-1])  # the landmark on a hand vertex is not used
     q = (scan.points - centre) * 1000
     valid = jnp.asarray(out.value.valid)

@@ -24,7 +24,6 @@ from ..registration._nrd import _apply as nrd_apply
 from ..registration._nrd import _correspond as nrd_correspond
 from ..registration._nrd import _energy as nrd_energy
 from ..registration._nrd import _grids as nrd_grids
-from ..registration._nrd import _landmark_map as nrd_landmark_map
 from ..registration._nrd import _pcg as nrd_pcg
 from ..registration._nrd import _prepare as nrd_prepare
 from ..registration._nrd import _Round as NRDRound
@@ -45,7 +44,6 @@ __all__ = [
     "nrd_correspond",
     "nrd_energy",
     "nrd_grids",
-    "nrd_landmark_map",
     "nrd_pcg",
     "nrd_prepare",
     "nrd_scan_arrays",

@@ -849,12 +849,6 @@ def _scan_arrays(scan, batched: bool):
     return arrays
 
 
-def _landmark_map(template: RegistrationTemplate, names) -> tuple[Array, Array]:
-    """Template vertex of each scan landmark (by name) and whether it may be used (γ = 0 on hand
-    vertices): [`bodyprior.registration.RegistrationTemplate.landmark_vertices`][]."""
-    return template.landmark_vertices(names)
-
-
 def _template_and_prep(template, config) -> tuple[RegistrationTemplate, NRDPrep]:
     """`template` (a RegistrationTemplate, prepared here, or an NRDPrep) -> (template, prep)."""
     if not isinstance(config, NRDConfig):
@@ -942,7 +936,7 @@ def nrd(
     template, prep = _template_and_prep(template, config)
     init = _check_inputs(init_vertices, template, config, batched=False)
     arrays = _scan_arrays(scan, batched=False)
-    lm_v, lm_use = _landmark_map(template, scan.landmark_names)
+    lm_v, lm_use = template.landmark_vertices(scan.landmark_names)
     sol = _nrd_jit(init, prep, lm_v, lm_use, _dtype_cast(init, arrays), config)
     return _check(sol, bool(throw), "NRD")
 
@@ -983,7 +977,7 @@ def nrd_batch(
             f"`init_vertices` has {init.shape[0]} meshes but `scans` has "
             f"{arrays[0].shape[0]} scans."
         )
-    lm_v, lm_use = _landmark_map(template, scans.landmark_names)
+    lm_v, lm_use = template.landmark_vertices(scans.landmark_names)
     arrays = _dtype_cast(init, arrays)
     n_dev = len(jax.devices()) if devices is None else len(list(devices))
     if strategy is None and n_dev == 1 and jax.process_count() == 1:

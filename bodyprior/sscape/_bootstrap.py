@@ -37,6 +37,7 @@ the largest reference 99th percentile. The `GateConfig` defaults are a fixed fal
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -49,6 +50,7 @@ from tqdm.auto import tqdm
 from .._geometry import closest_points_on_mesh, mesh_ring_faces
 from .._store import register_type
 from .._validate import check_array, check_positive_int
+from ..registration import nearest_within
 from ..registration._evaluate import fitting_error_batch
 from ..registration._template import RegistrationTemplate
 from ._learn import learn
@@ -368,17 +370,21 @@ def _learn_from(meshes, tmpl, n_components):
     return learn(jnp.asarray(meshes), tmpl.faces, n_components=k, rig=tmpl.rig)
 
 
+@functools.partial(jax.jit, static_argnames="radius")
+def _near_scan(vertices, points, mask, radius):
+    return jax.vmap(lambda v, p, m: nearest_within(v, p, m, radius) >= 0)(vertices, points, mask)
+
+
 def observed_vertices(vertices, scans, radius: float = 0.02) -> np.ndarray:
     """`(N, V)` bool: registration vertices within `radius` metres of a real (unpadded) point of
     their scan; the others lie over holes of the scan and were filled in by the fitter's prior.
 
     `vertices` `(N, V, 3)` metres in the scan frame; `scans` the batched
-    [`bodyprior.registration.Scan`][]. Exact nearest neighbours (k-d tree, host)."""
-    from scipy.spatial import cKDTree
-
+    [`bodyprior.registration.Scan`][]. Exact ([`bodyprior.registration.nearest_within`][], one
+    compile per batch shape and radius)."""
     v = np.asarray(vertices, np.float64)
     check_array(v, "vertices", ("N", None, 3))
-    pts, mask = np.asarray(scans.points, np.float64), np.asarray(scans.point_mask, bool)
+    pts = np.asarray(scans.points, np.float64)
     if pts.ndim != 3 or pts.shape[0] != v.shape[0]:
         raise ValueError(
             f"`scans` must be a batch of {v.shape[0]} scans (points (N, P, 3)), got points of "
@@ -386,11 +392,7 @@ def observed_vertices(vertices, scans, radius: float = 0.02) -> np.ndarray:
         )
     if not radius > 0:
         raise ValueError(f"`radius` must be > 0 metres, got {radius!r}.")
-    out = np.zeros(v.shape[:2], bool)
-    for i in range(v.shape[0]):
-        d, _ = cKDTree(pts[i][mask[i]]).query(v[i], distance_upper_bound=radius)
-        out[i] = np.isfinite(d)
-    return out
+    return np.asarray(_near_scan(v, pts, np.asarray(scans.point_mask, bool), float(radius)))
 
 
 def bootstrap(

@@ -262,6 +262,11 @@ def learn(
     if rig.n_vertices != v:
         raise ValueError(f"`rig` skins {rig.n_vertices} vertices but `meshes` have {v}.")
 
+    if observed is not None:  # checked before the alignment's work
+        if n_components is None:
+            raise ValueError("`observed` needs `n_components` (the rank of the EM fill).")
+        observed = _check_observed(observed, n, v)
+        em_iterations = check_positive_int(em_iterations, "em_iterations")
     x = jnp.asarray(meshes)
     if align:
         x, _ = procrustes_align(x, scale=scale, n_iter=n_iter)
@@ -273,10 +278,7 @@ def learn(
         x = np.asarray(jax.vmap(t.apply)(jnp.asarray(x)), dtype=np.float64)
 
     if observed is not None:
-        if n_components is None:
-            raise ValueError("`observed` needs `n_components` (the rank of the EM fill).")
-        x = _em_fill(x, _check_observed(observed, n, v), int(min(n_components, n - 1)),
-                     check_positive_int(em_iterations, "em_iterations"))  # fmt: skip
+        x = _em_fill(x, observed, int(min(n_components, n - 1)), em_iterations)
     mu, comps, s = _pca_host(x.reshape(n, v * 3))
     var = s**2
     total = var.sum()
