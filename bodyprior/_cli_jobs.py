@@ -359,24 +359,64 @@ def cmd_pose(args) -> int:
                            keep_root_translation=not args.no_root_motion)  # fmt: skip
     verts, joints = evaluate(body, phen, pose[0], trans[0])
     verts, joints = np.asarray(verts), np.asarray(joints)
+    faces = np.asarray(body.faces)
+    report = {}
+    if args.model == "panoman":
+        verts, faces, report = _panoman_pose(args, joints)
     os.makedirs(args.out, exist_ok=True)
     stem = f"{_stem(args.bvh)}_{frame:05d}"
     mesh_path = os.path.join(args.out, f"{stem}.{args.format}")
-    (write_ply if args.format == "ply" else write_obj)(mesh_path, verts, np.asarray(body.faces))
+    (write_ply if args.format == "ply" else write_obj)(mesh_path, verts, faces)
     png_path = os.path.join(args.out, f"{stem}.png")
-    views = [render_mesh(verts, body.faces, view=v, size=(args.size, args.size * 3 // 4))
+    views = [render_mesh(verts, faces, view=v, size=(args.size, args.size * 3 // 4))
              for v in ("front", "side")]  # fmt: skip
     save_png(png_path, np.concatenate(views, axis=1))
     atomic_write_json(os.path.join(args.out, f"{stem}.json"), dict(
-        bvh=os.path.abspath(args.bvh), frame=frame, n_frames=n,
+        bvh=os.path.abspath(args.bvh), frame=frame, n_frames=n, model=args.model,
         phenotypes=dict(zip(PHENOTYPES, np.round(phen, 5).tolist())),
         root_translation_m=np.round(trans[0], 5).tolist(),
         pose_axis_angle=np.round(pose[0], 6).tolist(), joint_names=list(body.joint_names),
         joints_m=np.round(joints, 5).tolist(), mesh=os.path.abspath(mesh_path),
-        image=os.path.abspath(png_path),
+        n_vertices=int(verts.shape[0]), image=os.path.abspath(png_path), **report,
     ))  # fmt: skip
-    print(f"{args.bvh} frame {frame}/{n} -> {mesh_path}, {png_path}")
+    print(f"{args.bvh} frame {frame}/{n} ({args.model}) -> {mesh_path}, {png_path}")
     return 0
+
+
+def _panoman_pose(args, joints: np.ndarray):
+    """`pose --model panoman`: the kit reconstructed from the frame's exact `cmu_mb` joints
+    (`bodyprior.panoman.reconstruct`); returns its vertices, faces and a report (fit statistics,
+    the joint residual of the kit's regressor on the result, mm)."""
+    import time
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the shell solve needs float64
+    from . import panoman as pm
+    from ._solution import RESULTS
+
+    if args.max_steps < 1:
+        raise ValueError(f"`--max-steps` must be >= 1, got {args.max_steps}.")
+    kit = pm.load_kit(args.kit) if args.kit else pm.default_panoman()
+    t0 = time.perf_counter()
+    rec = pm.reconstruct(kit, joints, max_steps=args.max_steps)
+    seconds = time.perf_counter() - t0
+    v = np.asarray(rec.value.vertices)
+    if not np.all(np.isfinite(v)):
+        raise ValueError("the PanoMan reconstruction is not finite; try --model skinning.")
+    res = 1e3 * np.linalg.norm(np.asarray(kit.regressor(v)) - joints, axis=1)
+    res_ik = 1e3 * np.linalg.norm(np.asarray(rec.stats["ik"]["joints"]) - joints, axis=1)
+    report = dict(
+        kit=os.path.abspath(args.kit) if args.kit else "shipped: bodyprior.panoman.default_panoman",
+        seconds=round(seconds, 2),
+        joint_residual_mm=dict(mean=round(float(res.mean()), 3), max=round(float(res.max()), 3)),
+        ik_joint_residual_mm=dict(mean=round(float(res_ik.mean()), 3),
+                                  max=round(float(res_ik.max()), 3)),
+        blocks=[{k: b[k] for k in ("part", "steps", "cg_steps", "energy0", "energy", "seconds")}
+                for b in rec.stats["blocks"]],
+        successful=bool(rec.result == RESULTS.successful),
+    )  # fmt: skip
+    return v, np.asarray(kit.model.topology.faces), report
 
 
 def cmd_render(args) -> int:

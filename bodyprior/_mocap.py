@@ -83,6 +83,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -922,6 +923,17 @@ def find_mocap_dir() -> Path | None:
         return Path(env) if Path(env).is_dir() else None
     candidate = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"  # ../shared
     return candidate if candidate.is_dir() else None
+
+
+def mocap_checksums(root: str | os.PathLike) -> dict:
+    """SHA-256 of every `.bvh` file under `root` (recursively), summarised for provenance records
+    of things trained on them: `{"n_files", "sha256_of_list"}` (the hash of the sorted
+    `relative/path:sha256` lines)."""
+    root = Path(root)
+    files = sorted(p for p in root.rglob("*.bvh") if p.is_file())
+    per = {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+    total = hashlib.sha256("".join(f"{k}:{v}\n" for k, v in per.items()).encode()).hexdigest()
+    return {"n_files": len(per), "sha256_of_list": total}
 
 
 def _bvh_files(paths_or_dirs) -> list[Path]:

@@ -224,7 +224,10 @@ def _add_jobs(sub) -> None:
     le.add_argument("--no-progress", action="store_true")
     le.set_defaults(func=_job("cmd_learn"))
 
-    po = sub.add_parser("pose", help="pose the default body from one BVH frame")
+    po = sub.add_parser(
+        "pose",
+        help="pose the default body from one BVH frame (skinning, or PanoMan from its joints)",
+    )
     po.add_argument("bvh", help="a BVH file (CMU skeletons)")
     po.add_argument("--frame", type=int, default=0, help="frame index (negative from the end)")
     po.add_argument(
@@ -237,6 +240,19 @@ def _add_jobs(sub) -> None:
     po.add_argument("--format", choices=("ply", "obj"), default="ply")
     po.add_argument("--size", type=int, default=512, help="image height in pixels")
     po.add_argument("--out", required=True, help="output directory")
+    po.add_argument(
+        "--model",
+        choices=("skinning", "panoman"),
+        default="skinning",
+        help="skinning: the default body posed by its rig (full mesh); panoman: the shipped "
+        "PanoMan kit reconstructed from the frame's joints (decimated mesh, about a minute)",
+    )
+    po.add_argument(
+        "--kit", default=None, help="PanoMan kit (bodyprior.panoman.save_kit; default: shipped)"
+    )
+    po.add_argument(
+        "--max-steps", type=int, default=5, help="PanoMan: LM iterations per block (default 5)"
+    )
     po.set_defaults(func=_job("cmd_pose"))
 
     re_ = sub.add_parser("render", help="render a mesh file to a PNG")

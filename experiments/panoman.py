@@ -239,6 +239,68 @@ def composition(model, body, hand_body, vm, test, i_body, expr, gesture):
     return out, shown
 
 
+def twist180(model, reg, body, vm, faces, phen, lc, torso, n_handles, solver, steps, rng) -> dict:
+    """The twist test (module docstring, 5.) on the identity `phen` / `lc`: a left-wrist twist of
+    179.9°, ground truth by the twist generator, LBS and DQS with the true pose, PanoMan with and
+    without the MLP fitted to the joints (through `reg`) + 5 forearm/hand markers + 5 of the
+    `torso` points (padded to `n_handles` rows), from β(θ) of the true pose, `steps` LM
+    iterations per block. **Returns:** per method the minimum forearm cross-section area ratio
+    (rest = 1), where along the forearm, and the vertex error against the truth (mm)."""
+    _, rj = bp.rest_shape(body, phen, lc)
+    fa, hd = body.joint_names.index("LeftForeArm"), body.joint_names.index("LeftHand")
+    ax = np.asarray(rj[hd] - rj[fa])
+    Lfa = float(np.linalg.norm(ax))
+    ax = ax / Lfa
+    pose = np.zeros((body.n_joints, 3))
+    pose[hd] = ax * np.deg2rad(179.9)
+    ts = np.arange(0.05, 1.06, 0.1)
+    rest_v = np.asarray(bp.evaluate(body, phen, local_changes=lc)[0])[vm]
+    A0 = bp.cross_section_areas(rest_v, faces, np.asarray(rj[fa]), ax, ts * Lfa)
+    tw = {}
+    gt_v, gt_j = bp.evaluate(body, phen, pose, local_changes=lc, skinning="twist")
+    gt_v = np.asarray(gt_v)[vm]
+    for sk in ("lbs", "dqs"):
+        v = np.asarray(bp.evaluate(body, phen, pose, local_changes=lc, skinning=sk)[0])[vm]
+        tw[sk] = v
+    tw["ground_truth"] = gt_v
+    # PanoMan fitted to joints + 5 markers (3 on the back of the hand, 2 on the distal forearm)
+    si = np.asarray(body.rig.skin_indices)[vm]
+    sw = np.asarray(body.rig.skin_weights)[vm]
+    dom = si[np.arange(si.shape[0]), sw.argmax(1)]
+    hand_bones = [body.joint_names.index(n) for n in ("LeftHand", "LeftFingerBase")]
+    hand_v = np.flatnonzero(np.isin(dom, hand_bones) & (sw.max(1) > 0.5))
+    t_fa = (rest_v - np.asarray(rj[fa])) @ ax / Lfa
+    fore_v = np.flatnonzero((dom == fa) & (t_fa > 0.6) & (t_fa < 0.95))
+    # + 5 of the torso points, padded as the C sets (the compiled solves are reused)
+    marks = np.concatenate(
+        [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False), torso[:5]]
+    )
+    hw = np.zeros(n_handles)
+    hw[: marks.size] = 1.0
+    marks = np.concatenate([marks, np.zeros(n_handles - marks.size, marks.dtype)])
+    gj = np.asarray(gt_j)
+    cp = pm.shell_constraints(
+        handles=(marks, gt_v[marks] * hw[:, None], hw),
+        joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
+    )
+    alpha = model.shape_coefficients(rest_v)
+    beta_mlp = model.beta_mlp(pm.pose_features(pose, body.joint_names))
+    kb = model.part_sizes[0]
+    bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
+    for name, corr in (("panoman", True), ("baseline", False)):
+        fit = pm.fit_panoman(model, cp, init=(alpha, np.asarray(bl), np.asarray(ba)),
+                             correct=corr, solver=solver, max_steps=steps,
+                             align_to=gt_v)  # fmt: skip
+        tw[name] = np.asarray(fit.value.vertices)
+    twist = {}
+    for name, v in tw.items():
+        ratio = bp.cross_section_areas(v, faces, np.asarray(rj[fa]), ax, ts * Lfa) / A0
+        twist[name] = dict(min_area_ratio=float(ratio.min()), at_t=float(ts[ratio.argmin()]),
+                           vertex_err_mean_mm=_err_mm(v, gt_v)[0],
+                           vertex_err_max_mm=_err_mm(v, gt_v)[1])  # fmt: skip
+    return twist
+
+
 def main(argv=None) -> dict:
     a = parse_args(argv)
     cfg = dict(QUICK if a.quick else FULL)
@@ -248,7 +310,6 @@ def main(argv=None) -> dict:
             cfg[k] = v
     os.makedirs(a.out, exist_ok=True)
     prog = not a.no_progress
-    key = jax.random.key(a.seed)
     metrics: dict = {"config": {**cfg, "mesh": a.mesh, "sex": a.sex, "quick": a.quick}}
     T: dict = {}
 
@@ -257,47 +318,20 @@ def main(argv=None) -> dict:
     mocap = a.mocap or bp.find_mocap_dir()
     if mocap is None:
         raise SystemExit("CMU mocap not found: pass --mocap or set BODYPRIOR_MOCAP_DIR.")
-    poses = bp.load_mocap(mocap, progress=prog)
-    train_poses, test_poses = bp.split_by_clip(poses, 0.2, seed=a.seed)
-    if a.mesh == "decimated":
-        vm, faces = bp.load_decimated()
-    else:
-        body0 = bp.load_default_body()
-        vm, faces = np.arange(body0.n_vertices), np.asarray(body0.faces)
-    top = bp.Topology.from_faces(faces)
-    body = bp.load_default_body("cmu_mb", local_changes=True, facial_actions=True)
-    hand_body = bp.load_default_body("game_engine", local_changes=True)
-    k_train, k_test, k_model, k_shape = jax.random.split(key, 4)
-    data = pm.make_panoman_data(
-        k_train, train_poses, n_body_identities=cfg["n_body_ids"],
-        poses_per_identity=cfg["poses_per_id"], n_face_identities=cfg["n_face_ids"],
-        n_hand_identities=cfg["n_hand_ids"], gestures_per_identity=cfg["gestures_per_id"],
-        sex=a.sex, vertex_map=vm, body=body, hand_body=hand_body, progress=prog,
-    )  # fmt: skip
-    test = pm.make_panoman_data(
-        k_test, test_poses, n_body_identities=cfg["n_test_ids"],
-        poses_per_identity=cfg["test_poses"], n_face_identities=0, n_hand_identities=0,
-        gestures_per_identity=0, sex=a.sex, vertex_map=vm, body=body, hand_body=hand_body,
-        progress=prog,
-    )  # fmt: skip
-    # shape PCA on many rest bodies of this sex (eq. 2; the paper uses SMPL's 10 PCs)
-    pop = bp.sample_population(2 * cfg["n_shape_rest"], key=k_shape, body=body,
-                               pose_jitter_deg=0.0, progress=prog)  # fmt: skip
-    keep = np.flatnonzero(np.asarray(pop.sex) == a.sex)[: cfg["n_shape_rest"]]
-    shape_rest = np.asarray(pop.vertices)[keep][:, vm]
-    del pop
+    # the shipped kit's recipe (pm.RECIPE) is this run's at the reduced sizes of
+    # docs/results_panoman.md: the same split, keys and training
+    split = pm.make_training_split(mocap, seed=a.seed, sex=a.sex, mesh=a.mesh, progress=prog,
+                                   **cfg)  # fmt: skip
+    data, test, top = split.train, split.test, split.topology
+    vm, faces = split.vertex_map, split.faces
+    body, hand_body = split.body, split.hand_body
     metrics["data"] = {"train": data.counts(), "test": test.counts(),
                        "n_vertices": top.n_vertices, "n_edges": top.n_edges}  # fmt: skip
     T["data_s"] = time.perf_counter() - t
 
     # ---------------------------------------------------------------- model
     t = time.perf_counter()
-    sol = pm.train_panoman(
-        data, top, key=k_model, n_components=tuple(cfg["k"]), shape_rest=shape_rest,
-        splocs_iterations=cfg["splocs_iter"], correction_hidden=cfg["mlp_hidden"],
-        correction_rank=cfg["rank"], correction_steps=cfg["mlp_steps"],
-        beta_steps=cfg["mlp_steps"], progress=prog,
-    )  # fmt: skip
+    sol = pm.train_split(split, progress=prog, **cfg)
     model = sol.value
     st = sol.stats
     T["train_s"] = time.perf_counter() - t
@@ -358,9 +392,9 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
 
     # ---------------------------------------------------------------- Fig. 18 / 20, C1–C3
-    lbsm = pm.make_lbs_model(model, data, body)
+    kit = pm.make_kit(model, data, body)  # what the shipped kit holds: regressor, LBS model
+    lbsm, reg = kit.lbs, kit.regressor
     dqsm = pm.make_lbs_model(model, data, body, skinning="dqs")
-    reg = pm.fit_joint_regressor(np.asarray(data.vertices)[sel], np.asarray(data.joints)[sel])
     rng = np.random.default_rng(a.seed)
     sets = constraint_sets(body, hand_body, vm, np.asarray(test.rest[0]), rng)
     torso = sets["torso"]
@@ -443,61 +477,9 @@ def main(argv=None) -> dict:
     T["recon_s"] = time.perf_counter() - t
     t = time.perf_counter()
     # ---------------------------------------------------------------- twist
-    ident = 0
-    phen = np.asarray(test.phenotypes[ident])
-    lc = np.asarray(test.local_changes[ident])
-    _, rj = bp.rest_shape(body, phen, lc)
-    fa, hd = body.joint_names.index("LeftForeArm"), body.joint_names.index("LeftHand")
-    ax = np.asarray(rj[hd] - rj[fa])
-    Lfa = float(np.linalg.norm(ax))
-    ax = ax / Lfa
-    pose = np.zeros((body.n_joints, 3))
-    pose[hd] = ax * np.deg2rad(179.9)
-    ts = np.arange(0.05, 1.06, 0.1)
-    rest_v = np.asarray(bp.evaluate(body, phen, local_changes=lc)[0])[vm]
-    A0 = bp.cross_section_areas(rest_v, faces, np.asarray(rj[fa]), ax, ts * Lfa)
-    tw = {}
-    gt_v, gt_j = bp.evaluate(body, phen, pose, local_changes=lc, skinning="twist")
-    gt_v = np.asarray(gt_v)[vm]
-    for sk in ("lbs", "dqs"):
-        v = np.asarray(bp.evaluate(body, phen, pose, local_changes=lc, skinning=sk)[0])[vm]
-        tw[sk] = v
-    tw["ground_truth"] = gt_v
-    # PanoMan fitted to joints + 5 markers (3 on the back of the hand, 2 on the distal forearm)
-    si = np.asarray(body.rig.skin_indices)[vm]
-    sw = np.asarray(body.rig.skin_weights)[vm]
-    dom = si[np.arange(si.shape[0]), sw.argmax(1)]
-    hand_bones = [body.joint_names.index(n) for n in ("LeftHand", "LeftFingerBase")]
-    hand_v = np.flatnonzero(np.isin(dom, hand_bones) & (sw.max(1) > 0.5))
-    t_fa = (rest_v - np.asarray(rj[fa])) @ ax / Lfa
-    fore_v = np.flatnonzero((dom == fa) & (t_fa > 0.6) & (t_fa < 0.95))
-    # + 5 of the torso points, padded as the C sets (the compiled solves are reused)
-    marks = np.concatenate(
-        [rng.choice(hand_v, 3, replace=False), rng.choice(fore_v, 2, replace=False), torso[:5]]
-    )
-    hw = np.zeros(n_handles)
-    hw[: marks.size] = 1.0
-    marks = np.concatenate([marks, np.zeros(n_handles - marks.size, marks.dtype)])
-    gj = np.asarray(gt_j)
-    cp = pm.shell_constraints(
-        handles=(marks, gt_v[marks] * hw[:, None], hw),
-        joints=(np.asarray(reg.indices), np.asarray(reg.weights), gj),
-    )
-    alpha = model.shape_coefficients(rest_v)
-    beta_mlp = model.beta_mlp(pm.pose_features(pose, body.joint_names))
-    kb = model.part_sizes[0]
-    bl, ba = model.with_body(beta_mlp[:kb], beta_mlp[kb:])
-    for name, corr in (("panoman", True), ("baseline", False)):
-        fit = pm.fit_panoman(model, cp, init=(alpha, np.asarray(bl), np.asarray(ba)),
-                             correct=corr, solver=solver, max_steps=cfg["twist_steps"],
-                             align_to=gt_v)  # fmt: skip
-        tw[name] = np.asarray(fit.value.vertices)
-    twist = {}
-    for name, v in tw.items():
-        ratio = bp.cross_section_areas(v, faces, np.asarray(rj[fa]), ax, ts * Lfa) / A0
-        twist[name] = dict(min_area_ratio=float(ratio.min()), at_t=float(ts[ratio.argmin()]),
-                           vertex_err_mean_mm=_err_mm(v, gt_v)[0],
-                           vertex_err_max_mm=_err_mm(v, gt_v)[1])  # fmt: skip
+    twist = twist180(model, reg, body, vm, faces, np.asarray(test.phenotypes[0]),
+                     np.asarray(test.local_changes[0]), torso, n_handles, solver,
+                     cfg["twist_steps"], rng)  # fmt: skip
     metrics["twist180"] = twist
     T["twist_s"] = time.perf_counter() - t
     for name in ("panoman", "baseline", "lbs", "dqs", "ground_truth"):

@@ -25,7 +25,6 @@ the same recipe on a train/test split: docs/results_dspp.md.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import time
 import warnings
@@ -87,13 +86,6 @@ def default_pose_prior(*, return_info: bool = False) -> PosePrior | tuple[PosePr
 
     **Raises:** `ValueError` if the file is missing or corrupted."""
     return _load("pose", return_info)
-
-
-def _bvh_checksums(root: Path) -> dict:
-    files = sorted(p for p in root.rglob("*.bvh") if p.is_file())
-    per = {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
-    total = hashlib.sha256("".join(f"{k}:{v}\n" for k, v in per.items()).encode()).hexdigest()
-    return {"n_files": len(per), "sha256_of_list": total}
 
 
 def _log_summary(sol, select: str) -> dict:
@@ -181,7 +173,7 @@ def build_default_pose_prior(
     shipped location). **Returns:** the provenance dict.
 
     **Raises:** `ValueError` if no mocap folder is found."""
-    from .. import find_mocap_dir, load_mocap, split_by_clip
+    from .. import find_mocap_dir, load_mocap, mocap_checksums, split_by_clip
     from ._train import train_pose_prior
 
     root = Path(mocap_dir) if mocap_dir is not None else find_mocap_dir()
@@ -210,7 +202,7 @@ def build_default_pose_prior(
             "n_train": int(train.n_poses),
             "n_validation": int(val.n_poses),
             "validation_clips": sorted(val.clip_names[i] for i in np.unique(np.asarray(val.clip))),
-            "bvh": _bvh_checksums(root),
+            "bvh": mocap_checksums(root),
             "seed": SEED,
         },
         "preset": "pose",

@@ -12,6 +12,11 @@ This subpackage holds PanoMan's machinery on bodyprior's core (it imports the co
   angles, fold guard), and its Levenberg–Marquardt solver [`bodyprior.panoman.shell_solve`][]
   over vertices and model parameters jointly, with editing, handle, joint and point-to-plane
   constraints ([`bodyprior.panoman.shell_constraints`][]).
+- **The model and reconstruction** (§3–5): [`bodyprior.panoman.train_panoman`][] on the
+  open-data training set ([`bodyprior.panoman.make_training_split`][]), a
+  [`bodyprior.panoman.PanoManKit`][] (model, joint regressor, LBS initialiser) and
+  [`bodyprior.panoman.reconstruct`][] (IK then [`bodyprior.panoman.fit_panoman`][]); a trained
+  kit ships: [`bodyprior.panoman.default_panoman`][].
 - **Sparse localized components** (Neumann et al. 2013, as PanoMan decomposes its RLA, §4.2):
   [`bodyprior.panoman.splocs`][] on per-edge scalars or per-vertex vectors, support maps from
   mesh distances in metres, signed weights, monotone energy; [`bodyprior.panoman.Splocs`][] with
@@ -44,6 +49,17 @@ from ._decode import (
 from ._decode import (
     rla_decode as rla_decode,
 )
+from ._default import RECIPE as RECIPE
+from ._default import PanoManKit as PanoManKit
+from ._default import TrainingSplit as TrainingSplit
+from ._default import build_default_panoman as build_default_panoman
+from ._default import default_panoman as default_panoman
+from ._default import load_kit as load_kit
+from ._default import make_kit as make_kit
+from ._default import make_training_split as make_training_split
+from ._default import reconstruct as reconstruct
+from ._default import save_kit as save_kit
+from ._default import train_split as train_split
 from ._fit import JointRegressor as JointRegressor
 from ._fit import LbsModel as LbsModel
 from ._fit import PanoManFit as PanoManFit
@@ -100,6 +116,17 @@ from ._splocs import splocs_project as splocs_project
 from ._splocs import splocs_reconstruct as splocs_reconstruct
 
 __all__ = [
+    "RECIPE",
+    "PanoManKit",
+    "TrainingSplit",
+    "build_default_panoman",
+    "default_panoman",
+    "load_kit",
+    "make_kit",
+    "make_training_split",
+    "reconstruct",
+    "save_kit",
+    "train_split",
     "JointRegressor",
     "LbsModel",
     "PanoManFit",

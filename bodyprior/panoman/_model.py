@@ -26,6 +26,7 @@ import json
 import math
 import os
 import time
+import zipfile
 
 import equinox as eqx
 import jax
@@ -642,13 +643,8 @@ def _mlp_from(prefix: str, z, meta) -> MLP | None:
     return MLP(Ws, bs, relu=tuple(m["relu"]), **f)
 
 
-def save_panoman(model: PanoManModel, path: str | os.PathLike, *, float16: bool = False) -> None:
-    """Writes `model` to an `.npz` file atomically (format `bodyprior.panoman_model` v1).
-
-    The component matrices are stored sparse (their non-zeros; SPLOCS components are localized),
-    in float16 if `float16` (the error it costs: see `docs/results_panoman.md`). The decoder is
-    rebuilt from the topology and the shape mean at load.
-    """
+def _model_arrays(model: PanoManModel, float16: bool) -> tuple[dict, dict]:
+    """The arrays and metadata of `model`'s file (format `bodyprior.panoman_model` v1)."""
     arrays: dict = {}
     meta = dict(format=FORMAT, format_version=FORMAT_VERSION, part_sizes=list(model.part_sizes),
                 info=model.info, float16=bool(float16))  # fmt: skip
@@ -672,27 +668,51 @@ def save_panoman(model: PanoManModel, path: str | os.PathLike, *, float16: bool 
         for k in list(arrays):
             if k.startswith(("correction.W", "beta_mlp.W")):
                 arrays[k] = arrays[k].astype(np.float16)
-    arrays["metadata"] = np.asarray(json.dumps(meta))
+    return arrays, meta
+
+
+def _write_npz(path: str | os.PathLike, arrays: dict, meta: dict) -> None:
+    arrays = dict(arrays, metadata=np.asarray(json.dumps(meta)))
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     atomic_write_bytes(path, buf.getvalue())
 
 
-def load_panoman(path: str | os.PathLike) -> PanoManModel:
-    """Reads a model written by [`bodyprior.panoman.save_panoman`][] (validated: format, version,
-    shapes; a `ValueError` says what is wrong)."""
+def _read_npz(path: str | os.PathLike, what: str) -> tuple[dict, dict]:
     path = os.fspath(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             z = dict(z)
-        meta = json.loads(str(z["metadata"]))
-    except (OSError, ValueError, KeyError) as e:
-        raise ValueError(f"{path!r} is not a readable PanoMan model ({e}).") from e
+        meta = json.loads(str(z.pop("metadata")))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{path!r} is not a readable {what} ({e}).") from e
     if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
         raise ValueError(
             f"{path!r} has format {meta.get('format')!r} v{meta.get('format_version')}, expected "
             f"{FORMAT!r} v{FORMAT_VERSION}."
         )
+    return z, meta
+
+
+def save_panoman(model: PanoManModel, path: str | os.PathLike, *, float16: bool = False) -> None:
+    """Writes `model` to an `.npz` file atomically (format `bodyprior.panoman_model` v1).
+
+    The component matrices are stored sparse (their non-zeros; SPLOCS components are localized),
+    in float16 if `float16` (the error it costs: see `docs/results_panoman.md`). The decoder is
+    rebuilt from the topology and the shape mean at load.
+    """
+    _write_npz(path, *_model_arrays(model, float16))
+
+
+def load_panoman(path: str | os.PathLike) -> PanoManModel:
+    """Reads a model written by [`bodyprior.panoman.save_panoman`][] (or the model part of a
+    [`bodyprior.panoman.save_kit`][] file; validated: format, version, shapes; a `ValueError` says
+    what is wrong)."""
+    z, meta = _read_npz(path, "PanoMan model")
+    return _model_from(z, meta, os.fspath(path))
+
+
+def _model_from(z: dict, meta: dict, path: str) -> PanoManModel:
     topology = Topology.from_faces(z["faces"], allow_boundary=True)
     V, E = topology.n_vertices, topology.n_edges
     mats = {}
