@@ -397,9 +397,13 @@ def _panoman_pose(args, joints: np.ndarray):
 
     if args.max_steps < 1:
         raise ValueError(f"`--max-steps` must be >= 1, got {args.max_steps}.")
+    blocks = tuple(b.strip() for b in args.blocks.split(",") if b.strip())
+    if not blocks or any(b not in pm.PARTS for b in blocks):
+        raise ValueError(f"`--blocks` must be a comma-separated subset of {pm.PARTS}, got "
+                         f"{args.blocks!r}.")  # fmt: skip
     kit = pm.load_kit(args.kit) if args.kit else pm.default_panoman()
     t0 = time.perf_counter()
-    rec = pm.reconstruct(kit, joints, max_steps=args.max_steps)
+    rec = pm.reconstruct(kit, joints, max_steps=args.max_steps, blocks=blocks)
     seconds = time.perf_counter() - t0
     v = np.asarray(rec.value.vertices)
     if not np.all(np.isfinite(v)):

@@ -253,6 +253,12 @@ def _add_jobs(sub) -> None:
     po.add_argument(
         "--max-steps", type=int, default=5, help="PanoMan: LM iterations per block (default 5)"
     )
+    po.add_argument(
+        "--blocks",
+        default="face,body,hand",
+        help="PanoMan: the blocks solved, in order (default face,body,hand; joints alone "
+        "constrain mostly the body: 'body' is about a third of the time)",
+    )
     po.set_defaults(func=_job("cmd_pose"))
 
     re_ = sub.add_parser("render", help="render a mesh file to a PNG")

@@ -261,7 +261,7 @@ def test_kit_save_load_and_reconstruct(trained, tmp_path):
                                   np.asarray(rec.stats["ik"]["vertices"]))  # fmt: skip
     assert e < 0.05 and e_ik < 0.05, (e, e_ik)
     # the points alone (no joints) also work; bad input names the argument
-    rec_p = pm.reconstruct(kit2, points=(pts, gt[pts]), max_steps=1, blocks=("body",))
+    rec_p = pm.reconstruct(kit2, points=(pts, gt[pts]), max_steps=2, blocks=("body",))
     assert np.isfinite(np.asarray(rec_p.value.vertices)).all()
     with pytest.raises(ValueError, match="joints"):
         pm.reconstruct(kit2)
@@ -291,17 +291,18 @@ def test_cli_pose_with_a_panoman_kit(trained, tmp_path, capsys):
     bp.poses_to_bvh(body, poses, np.zeros((2, 3)), fps=30.0, path=tmp_path / "clip.bvh")
     out = tmp_path / "posed"
     argv = ["--no-cache", "pose", str(tmp_path / "clip.bvh"), "--frame", "1", "--model",
-            "panoman", "--kit", str(kit_path), "--max-steps", "1", "--out", str(out),
-            "--size", "96"]  # fmt: skip
+            "panoman", "--kit", str(kit_path), "--max-steps", "2", "--blocks", "body", "--out",
+            str(out), "--size", "96"]  # fmt: skip
     assert main(argv) == 0
     v, f, _ = bp.read_mesh(out / "clip_00001.ply")
     assert v.shape == (top.n_vertices, 3) and f.shape[0] == top.n_faces
     meta = json.loads((out / "clip_00001.json").read_text())
     assert meta["model"] == "panoman" and meta["n_vertices"] == top.n_vertices
-    assert [b["part"] for b in meta["blocks"]] == ["face", "body", "hand"]
-    # the result follows the frame's joints (the tiny model: within a few cm) at least as well
-    # as a body that ignores them
+    assert [b["part"] for b in meta["blocks"]] == ["body"]
+    # the result follows the frame's joints (the tiny model: within a few cm)
     assert meta["joint_residual_mm"]["mean"] < 40.0, meta["joint_residual_mm"]
     assert (out / "clip_00001.png").stat().st_size > 500
-    assert main(argv[:-6] + ["--max-steps", "0", "--out", str(out)]) == 2
+    assert main(argv[:-8] + ["--max-steps", "0", "--out", str(out)]) == 2
     assert "--max-steps" in capsys.readouterr().err
+    assert main(argv[:-8] + ["--blocks", "body,legs", "--out", str(out)]) == 2
+    assert "--blocks" in capsys.readouterr().err
