@@ -1,5 +1,5 @@
 """experiments/panoman_shipped.py in `--quick` mode on the shipped kit (one held-out frame, C1,
-2 twist iterations; about 3 minutes on 2 cores, so it is marked slow:
+2 twist iterations; about 1.5 minutes on 2 cores, so it is marked slow:
 `python -m pytest -m slow tests/test_panoman_shipped_experiment.py`)."""
 
 import json
