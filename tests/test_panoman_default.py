@@ -46,5 +46,11 @@ def test_reconstruct_validates_before_fitting():
         pm.reconstruct(kit, np.zeros((3, 3)))
     with pytest.raises(ValueError, match="joint_weights"):
         pm.reconstruct(kit, np.zeros((kit.n_joints, 3)), joint_weights=-np.ones(kit.n_joints))
+    with pytest.raises(ValueError, match="max_steps"):
+        pm.reconstruct(kit, np.zeros((kit.n_joints, 3)), max_steps=0)
+    with pytest.raises(ValueError, match="nothing to fit"):
+        pm.reconstruct(kit, points=(np.zeros(0, int), np.zeros((0, 3))))
+    with pytest.raises(ValueError, match="PanoManKit"):
+        pm.reconstruct(kit.model, np.zeros((kit.n_joints, 3)))
     with pytest.raises(ValueError, match="recipe"):
         pm.build_default_panoman("/nonexistent/x.npz", n_bodies=3)

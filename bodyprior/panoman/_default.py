@@ -45,7 +45,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from .._body import load_default_body
 from .._solution import RESULTS, Solution
 from .._topology import Topology
-from .._validate import check_array
+from .._validate import check_array, check_positive_int
 from ..registration import template_sources
 from ._data import PanomanData, make_panoman_data
 from ._fit import (
@@ -444,8 +444,8 @@ def reconstruct(
 
     **Arguments:**
 
-    - `joints`: `(J, 3)` metres, the `cmu_mb` joints in `kit.joint_names` order (world frame,
-      y up); `joint_weights` `(J,)` ≥ 0 (0 drops a joint; default all 1).
+    - `joints`: `(J, 3)` metres, the `cmu_mb` joints in `kit.joint_names` order (world frame:
+      Z up, the body facing −Y); `joint_weights` `(J,)` ≥ 0 (0 drops a joint; default all 1).
     - `points`: `(index (H,), position (H, 3))`, vertex handles on the model's vertices (indices
       into its `V` vertices, metres), e.g. markers or feature points.
     - `correct`: with the correction MLP (eq. 5); `False` is the eq. 4 baseline. `blocks`,
@@ -457,6 +457,9 @@ def reconstruct(
     `joints`, `steps`, `seconds`). On held-out frames of the reduced run (31 joints + 10 torso
     points) the mean vertex error was 14.8 mm against 17.5 mm for the IK mesh alone.
     """
+    if not isinstance(kit, PanoManKit):
+        raise ValueError(f"`kit` must be a PanoManKit (pm.default_panoman()), got {type(kit)}.")
+    check_positive_int(max_steps, "max_steps")
     J, V = kit.n_joints, kit.model.topology.n_vertices
     if joints is None and points is None:
         raise ValueError("reconstruct needs `joints` (J, 3) and/or `points` (index, position).")
@@ -469,6 +472,8 @@ def reconstruct(
         if hidx.size and (hidx.min() < 0 or hidx.max() >= V):
             raise ValueError(f"`points[0]` indices must lie in [0, {V}).")
         hpos = check_array(np.asarray(points[1], np.float64), "points[1]", (hidx.size, 3))
+        if joints is None and hidx.size == 0:
+            raise ValueError("`points` is empty and no `joints` are given: nothing to fit.")
     else:
         hidx, hpos = np.zeros(0, np.int32), np.zeros((0, 3))
     if joints is not None:
