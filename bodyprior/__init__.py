@@ -26,6 +26,7 @@ from ._body import (
     variation_weights as variation_weights,
 )
 from ._rig import Rig as Rig
+from ._expressions import load_expression_units as load_expression_units
 from ._bvh import Bvh as Bvh, read_bvh as read_bvh, write_bvh as write_bvh
 from ._geometry import (
     barycentric_points as barycentric_points,
@@ -188,6 +189,7 @@ __all__ = [
     "load_asset",
     "load_decimated",
     "load_default_body",
+    "load_expression_units",
     "load_mocap",
     "mocap_checksums",
     "macro_coefficients",
