@@ -123,6 +123,7 @@ def make_training_split(
     n_shape_rest: int,
     n_test_ids: int = 0,
     test_poses: int = 0,
+    n_expressions: int = 39,
     train: bool = True,
     progress: bool = True,
     **_ignored,
@@ -131,7 +132,8 @@ def make_training_split(
 
     The mocap clips under `mocap_dir` are split by clip (`test_fraction` of them held out, seed
     `seed`); `train` poses `n_body_ids × poses_per_id` body meshes of training clips on fresh
-    identities of sex `sex` (0 male, 1 female), plus `n_face_ids × 39` expressions and
+    identities of sex `sex` (0 male, 1 female), plus `n_face_ids × n_expressions` expressions
+    (the first `n_expressions` of [`bodyprior.panoman.expression_set`][], default 39) and
     `n_hand_ids × gestures_per_id` gestures; `test` poses `n_test_ids × test_poses` body meshes of
     the held-out clips on other identities (`None` if `n_test_ids` or `test_poses` is 0).
     `shape_rest`: the first `n_shape_rest` rest bodies of that sex from
@@ -168,8 +170,8 @@ def make_training_split(
     if train:
         train_set = make_panoman_data(
             k_train, train_poses, n_body_identities=n_body_ids, poses_per_identity=poses_per_id,
-            n_face_identities=n_face_ids, n_hand_identities=n_hand_ids,
-            gestures_per_identity=gestures_per_id, **common,
+            n_face_identities=n_face_ids, n_expressions=n_expressions,
+            n_hand_identities=n_hand_ids, gestures_per_identity=gestures_per_id, **common,
         )  # fmt: skip
     test = None
     if n_test_ids and test_poses:
