@@ -106,3 +106,21 @@ def test_expression_experiment_quick(tmp_path):
     # units that are H_F's own facial actions are represented as well as the training source's
     assert m["makehuman_units"]["missed_fraction_median"] < 0.5
     assert (out / "expressions.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not MOCAP.is_dir(), reason="needs ../shared/data/mocap")
+def test_training_split_expression_count():
+    """`make_training_split(n_expressions=)` sets the size of H_F (the first n of
+    `expression_set`)."""
+    import bodyprior.panoman as pm
+
+    split = pm.make_training_split(MOCAP, n_body_ids=2, poses_per_id=1, n_face_ids=2,
+                                   n_expressions=5, n_hand_ids=0, gestures_per_id=0,
+                                   n_shape_rest=2, progress=False)  # fmt: skip
+    tr = split.train
+    face = np.flatnonzero(np.asarray(tr.kind) == pm.KINDS.index("face"))
+    assert face.size == 10
+    labels = split.body.face_labels
+    np.testing.assert_allclose(np.asarray(tr.expression_weights)[:5],
+                               pm.expression_set(labels, 5), atol=1e-6)  # fmt: skip
