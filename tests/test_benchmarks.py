@@ -75,7 +75,8 @@ KEYS = {
             "bodyprior_blend_s",
             "peer_blend_s",
             "shell.shell_iter_s",
-            "shell.setup_s",
+            # (not `shell.setup_s`: a difference of two timings, t1 − (t6 − t1)/5, which can fall
+            # below 0 on a loaded machine now that the parameter Gram costs ~1 s)
             "shell.compile_s",
             "splocs.splocs_outer_s",
             "splocs.peer_outer_s",

@@ -130,6 +130,41 @@ def test_gauss_newton_jacobian_and_exact_preconditioner(mesh):
     assert int(sol.stats["cg_steps"]) <= int(sol.stats["steps"]), sol.stats
 
 
+class _RestScaled(eqx.Module):
+    rest: jax.Array
+
+    def __call__(self, p):
+        return self.rest * (1.0 + p["s"][0]) + p["s"][1] * jnp.sin(self.rest)
+
+
+def test_parameter_gram_equals_the_dense_jacobian_gram(mesh):
+    """The preconditioner's parameter block (targets read `b`, the rest mesh reads `s`, editing
+    rows on both) equals `JᵀJ` of the whole residual's dense Jacobian over the parameters, and the
+    static analysis finds the leaf the rest mesh reads."""
+    v, x, top, solver = mesh
+    y = v * 1.1 + 0.05 * np.sin(3 * v)
+    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
+    blend = _Blend(basis)
+    targets = lambda p: blend(p["b"])  # noqa: E731
+    rest = _RestScaled(jnp.asarray(v))
+    params0 = {"b": jnp.array([0.4, 0.2]), "s": jnp.array([0.05, 0.01])}
+    assert pm._solve._leaves_read(rest, params0) == [False, True]
+    h = np.random.default_rng(5).choice(v.shape[0], 8, replace=False)
+    cons = pm.shell_constraints(handles=(h, x[h]), params=(np.array([0, 3, 3]), np.zeros(3)))
+    cfg = pm._solve._Config("fb", *map(jnp.asarray, (1.0, 0.1, 1e3, 1, 0.0, 1e-8, 1e-4)), 10)
+    from jax.flatten_util import ravel_pytree
+
+    p0, unravel = ravel_pytree(params0)
+    V0 = jnp.asarray(0.5 * (v + x))
+
+    def resid(p):
+        return jnp.concatenate(pm._solve._parts(V0, p, targets, rest, cons, top, cfg, unravel))
+
+    J = jax.jacfwd(resid)(p0)
+    G = pm._solve._param_gram(targets, rest, params0, p0, V0, cons, top, cfg, unravel)
+    np.testing.assert_allclose(G, J.T @ J, rtol=1e-10, atol=1e-10 * float(jnp.abs(G).max()))
+
+
 def test_solve_nan_free_from_flat_and_degenerate_starts(mesh):
     """Starts with a collapsed (zero-area) fan and with a flattened mesh (folded hinges) stay
     finite and reach the target body."""

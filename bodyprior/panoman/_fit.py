@@ -253,7 +253,9 @@ class _BlockTargets(eqx.Module):
 
     def __call__(self, params) -> RLA:
         _, bl, ba = self._full(params)
-        return model_targets(self.model, bl, ba, correct=self.correct)
+        return model_targets(
+            self.model, bl, ba, correct=self.correct, moving=slice(self.start, self.stop)
+        )
 
     def rest(self, params):
         a, _, _ = self._full(params)

@@ -311,18 +311,35 @@ class PanoManModel(eqx.Module):
 
 
 def model_targets(
-    model: PanoManModel, beta_lengths, beta_angles, *, correct: bool | ArrayLike = True
+    model: PanoManModel,
+    beta_lengths,
+    beta_angles,
+    *,
+    correct: bool | ArrayLike = True,
+    moving: slice | None = None,
 ) -> RLA:
     """`X_L(α, β)`, `X_A(α, β)` of eq. 5 (eq. 3 without the correction or with `correct=False`):
     an [`bodyprior.panoman.RLA`][] `(E,)` relative to `B_S(α)`. Traceable, differentiable.
 
     `correct` may also be a (traced) number: the correction is scaled by it, so a fit with and
-    without the MLP shares one compiled program."""
+    without the MLP shares one compiled program. `moving` (a static slice of component rows, e.g.
+    [`bodyprior.panoman.PanoManModel.part_slice`][]) gives the same value but holds the
+    coefficients outside it constant: their derivatives are zero, and derivatives with respect to
+    the rows inside multiply only those rows of the component matrices (each block of
+    [`bodyprior.panoman.fit_panoman`][] moves one part's coefficients; the correction MLP still
+    sees all body coefficients)."""
     bl = jnp.asarray(beta_lengths)
     ba = jnp.asarray(beta_angles)
     dt = model.components_lengths.dtype
-    L = model.mean_lengths + bl.astype(dt) @ model.components_lengths
-    A = model.mean_angles + ba.astype(dt) @ model.components_angles
+    if moving is None:
+        L = model.mean_lengths + bl.astype(dt) @ model.components_lengths
+        A = model.mean_angles + ba.astype(dt) @ model.components_angles
+    else:
+        CL, CA = model.components_lengths, model.components_angles
+        fixed_l = jax.lax.stop_gradient(bl.at[moving].set(0.0)).astype(dt)
+        fixed_a = jax.lax.stop_gradient(ba.at[moving].set(0.0)).astype(dt)
+        L = model.mean_lengths + fixed_l @ CL + bl[moving].astype(dt) @ CL[moving]
+        A = model.mean_angles + fixed_a @ CA + ba[moving].astype(dt) @ CA[moving]
     if model.correction is not None and not (isinstance(correct, bool) and not correct):
         s = model.part_slice("body")
         r = model.correction(jnp.concatenate([bl[s], ba[s]]).astype(jnp.float32)).astype(dt)
