@@ -165,6 +165,56 @@ def test_parameter_gram_equals_the_dense_jacobian_gram(mesh):
     np.testing.assert_allclose(G, J.T @ J, rtol=1e-10, atol=1e-10 * float(jnp.abs(G).max()))
 
 
+def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh):
+    """The PCG's product `JᵀJ z` built from the shell rows' explicit vertex Jacobian rows (the
+    ones the colouring JVPs extract) equals the product through the whole linearised residual,
+    with parameters the targets and the rest mesh read and every constraint type."""
+    v, x, top, solver = mesh
+    y = v * 1.1 + 0.05 * np.sin(3 * v)
+    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
+    blend = _Blend(basis)
+    targets = lambda p: blend(p["b"])  # noqa: E731
+    rest = _RestScaled(jnp.asarray(v))
+    params0 = {"b": jnp.array([0.4, 0.2]), "s": jnp.array([0.05, 0.01])}
+    rng = np.random.default_rng(7)
+    h = rng.choice(v.shape[0], 8, replace=False)
+    f = rng.choice(top.n_faces, 10, replace=False)
+    bary = rng.dirichlet(np.ones(3), 10)
+    pts = np.einsum("sa,sad->sd", bary, x[np.asarray(top.faces)[f]])
+    nrm = np.asarray(bp.face_normals(x, top.faces))[f]
+    ji = rng.choice(v.shape[0], (3, 5), replace=False)
+    jc = rng.dirichlet(np.ones(5), 3)
+    cons = pm.shell_constraints(
+        handles=(h, x[h]), params=(np.array([0, 3]), np.zeros(2)), surface=(f, bary, pts, nrm),
+        joints=(ji, jc, rng.normal(size=(3, 3))),
+    )  # fmt: skip
+    cfg = pm._solve._Config("fb", *map(jnp.asarray, (1.0, 0.1, 1e3, 1, 0.0, 1e-8, 1e-4)), 10)
+    from jax.flatten_util import ravel_pytree
+
+    p0, unravel = ravel_pytree(params0)
+    nV = v.shape[0]
+    V0 = jnp.asarray(0.5 * (v + x))
+
+    def parts(V, p):
+        return pm._solve._parts(V, p, targets, rest, cons, top, cfg, unravel)
+
+    def resid(u):
+        return jnp.concatenate(parts(u[: 3 * nV].reshape(nV, 3), u[3 * nV :]))
+
+    u = jnp.concatenate([V0.ravel(), p0])
+    E = top.n_edges
+    Js = jax.jacfwd(lambda V: jnp.concatenate(parts(V, p0)[:2]))(V0)  # (2E, V, 3)
+    st = np.asarray(solver.stencils)
+    js = Js[np.arange(E)[:, None], st[:, :2]].reshape(E, 6)
+    jb = Js[E + np.arange(E)[:, None], st].reshape(E, 12)
+    prod = pm._solve._gauss_newton_product(parts, u, nV, solver.stencils, jb, js)
+    _, jvp = jax.linearize(resid, u)
+    for k in range(3):
+        z = jnp.asarray(rng.standard_normal(u.shape))
+        (ref,) = jax.linear_transpose(jvp, u)(jvp(z))
+        np.testing.assert_allclose(prod(z), ref, rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
+
+
 def test_solve_nan_free_from_flat_and_degenerate_starts(mesh):
     """Starts with a collapsed (zero-area) fan and with a flattened mesh (folded hinges) stay
     finite and reach the target body."""

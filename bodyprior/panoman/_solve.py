@@ -16,15 +16,16 @@ energy plus constraint energies, with the vertices and the model parameters unkn
   with normals `n` matched to barycentric points of faces `f` (correspondences fixed during a
   solve; re-match and call again for ICP).
 
-**Linear algebra** (measured on the default body, `docs/benchmarks.md`): each iteration solves
-`(JᵀJ + μ D) δ = −Jᵀr` by PCG on the whole system (vertices and parameters, matrix-free products
-from `jax.linearize`) preconditioned by an exact sparse LDLᵀ factorisation of the shell +
-handle + surface block (qdldl, AMD ordering, symbolic analysis once per topology; on the host)
-and a dense Cholesky of the parameter block's Gram matrix (computed once per solve at the start,
-exact for targets linear in `p`). The joint-regressor rows and the vertex–parameter coupling are
-the low-rank part the PCG resolves. Plain block-Jacobi PCG needs ~6,800 steps for a 1e-2
-residual reduction on the decimated body, the factorisation 0.19 s (0.46 s full body): the
-factorisation won.
+**Linear algebra** (measured on the default body, `docs/benchmarks.md`): each iteration solves `(JᵀJ
++ μ D) δ = −Jᵀr` by PCG on the whole system (vertices and parameters; matrix-free products: the
+shell rows' vertex block from their explicit Jacobian rows, the rest from `jax.linearize` of the
+parameter and constraint parts) preconditioned by an exact sparse LDLᵀ factorisation of the shell +
+handle + surface block (qdldl, AMD ordering, symbolic analysis once per topology; on the host) and a
+dense Cholesky of the parameter block's Gram matrix (computed once per solve at the start, exact for
+targets linear in `p`; parameters the rest mesh does not read go through the targets alone,
+`_param_gram`). The joint-regressor rows and the vertex–parameter coupling are the low-rank part the
+PCG resolves. Plain block-Jacobi PCG needs ~6,800 steps for a 1e-2 residual reduction on the
+decimated body, the factorisation 0.19 s (0.46 s full body): the factorisation won.
 
 `D` is the diagonal of the preconditioned blocks (Marquardt scaling); `μ` follows Nielsen's rule.
 An iteration budget ending is not a failure (`stats["converged"]` says whether the stopping test
@@ -497,6 +498,49 @@ def _param_gram(targets, rest, params0, p0, V0, cons, topology, cfg, unravel):
     return G.at[cons.param_index, cons.param_index].add(lam * cons.param_weight)
 
 
+def _gauss_newton_product(parts, u, nV, stencils, jb, js):
+    """`z ↦ JᵀJ z` at `u = (V, p)` for the residual `parts(V, p) = (s, b, c)`, with the shell rows'
+    vertex block from their explicit Jacobian rows (`js` `(E, 6)` over the edge's two vertices,
+    `jb` `(E, 12)` over the hinge stencil `stencils` `(E, 4)`: 18 multiply-adds per edge each way)
+    and everything else (the shell rows' parameter block, the constraint rows) through
+    linearisations of those parts alone. Equal to the product through the whole linearised
+    residual (tested), at a fraction of its cost: that one re-runs the linearised hinge geometry
+    (~21 ms per product on the full body)."""
+    V0, p0 = u[: 3 * nV].reshape(nV, 3), u[3 * nV :]
+    E = stencils.shape[0]
+    jb3, js3 = jb.reshape(E, 4, 3), js.reshape(E, 2, 3)
+    P = p0.shape[0]
+    if P:
+        _, sp = jax.linearize(lambda p: jnp.concatenate(parts(V0, p)[:2]), p0)
+        spT = jax.linear_transpose(sp, p0)
+    _, cvp = jax.linearize(lambda V, p: parts(V, p)[2], V0, p0)
+    cvpT = jax.linear_transpose(cvp, V0, p0)
+
+    def product(z):
+        zV, zp = z[: 3 * nV].reshape(nV, 3), z[3 * nV :]
+        g = zV[stencils]  # (E, 4, 3)
+        y_s = jnp.einsum("ead,ead->e", js3, g[:, :2])
+        y_b = jnp.einsum("ead,ead->e", jb3, g)
+        if P:
+            ysb = sp(zp)
+            y_s, y_b = y_s + ysb[:E], y_b + ysb[E:]
+        y_c = cvp(zV, zp)
+        outV = (
+            jnp.zeros((nV, 3), z.dtype)
+            .at[stencils[:, :2]].add(js3 * y_s[:, None, None])
+            .at[stencils].add(jb3 * y_b[:, None, None])
+        )  # fmt: skip
+        cV, cp = cvpT(y_c)
+        outV = outV + cV
+        outp = cp
+        if P:
+            (sp_t,) = spT(jnp.concatenate([y_s, y_b]))
+            outp = outp + sp_t
+        return jnp.concatenate([outV.ravel(), outp])
+
+    return product
+
+
 def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolver, cfg: _Config):
     p0, unravel = ravel_pytree(params0)
     p0 = jnp.asarray(p0, jnp.float64)
@@ -588,10 +632,14 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
             Gd = Gp + jnp.diag(mu * dGp + 1e-12 * (jnp.mean(dGp) + 1e-300))
             cho = jax.scipy.linalg.cho_factor(Gd)
 
+        gn = _gauss_newton_product(
+            lambda V, p: _parts(V, p, targets, rest, cons, topology, cfg, unravel),
+            u, nV, st, jb, js,
+        )  # fmt: skip
+
         def matvec(z):
             z = z[:, 0]
-            (jtj,) = jax.linear_transpose(jvp, u)(jvp(z))
-            return (jtj + damp * z)[:, None]
+            return (gn(z) + damp * z)[:, None]
 
         def precondition(z):
             z = z[:, 0]
