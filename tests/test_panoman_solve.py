@@ -160,9 +160,14 @@ def test_parameter_gram_equals_the_dense_jacobian_gram(mesh):
     def resid(p):
         return jnp.concatenate(pm._solve._parts(V0, p, targets, rest, cons, top, cfg, unravel))
 
-    J = jax.jacfwd(resid)(p0)
-    G = pm._solve._param_gram(targets, rest, params0, p0, V0, cons, top, cfg, unravel)
-    np.testing.assert_allclose(G, J.T @ J, rtol=1e-10, atol=1e-10 * float(jnp.abs(G).max()))
+    @jax.jit
+    def grams(p0, V0):
+        J = jax.jacfwd(resid)(p0)
+        G = pm._solve._param_gram(targets, rest, params0, p0, V0, cons, top, cfg, unravel)
+        return G, J.T @ J
+
+    G, ref = grams(p0, V0)
+    np.testing.assert_allclose(G, ref, rtol=1e-10, atol=1e-10 * float(jnp.abs(G).max()))
 
 
 def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh):
@@ -203,16 +208,21 @@ def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh)
 
     u = jnp.concatenate([V0.ravel(), p0])
     E = top.n_edges
-    Js = jax.jacfwd(lambda V: jnp.concatenate(parts(V, p0)[:2]))(V0)  # (2E, V, 3)
     st = np.asarray(solver.stencils)
-    js = Js[np.arange(E)[:, None], st[:, :2]].reshape(E, 6)
-    jb = Js[E + np.arange(E)[:, None], st].reshape(E, 12)
-    prod = pm._solve._gauss_newton_product(parts, u, nV, solver.stencils, jb, js)
-    _, jvp = jax.linearize(resid, u)
-    for k in range(3):
-        z = jnp.asarray(rng.standard_normal(u.shape))
-        (ref,) = jax.linear_transpose(jvp, u)(jvp(z))
-        np.testing.assert_allclose(prod(z), ref, rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
+
+    @jax.jit
+    def both(u, z):  # (3, n) directions -> the two products, each (3, n)
+        V = u[: 3 * nV].reshape(nV, 3)
+        Js = jax.jacfwd(lambda V: jnp.concatenate(parts(V, p0)[:2]))(V)  # (2E, V, 3)
+        js = Js[np.arange(E)[:, None], st[:, :2]].reshape(E, 6)
+        jb = Js[E + np.arange(E)[:, None], st].reshape(E, 12)
+        prod = pm._solve._gauss_newton_product(parts, u, nV, solver.stencils, jb, js)
+        _, jvp = jax.linearize(resid, u)
+        ref = jax.vmap(lambda z: jax.linear_transpose(jvp, u)(jvp(z))[0])(z)
+        return jax.vmap(prod)(z), ref
+
+    new_, ref = both(u, jnp.asarray(rng.standard_normal((3,) + u.shape)))
+    np.testing.assert_allclose(new_, ref, rtol=1e-9, atol=1e-9 * float(jnp.abs(ref).max()))
 
 
 def test_solve_nan_free_from_flat_and_degenerate_starts(mesh):
