@@ -91,6 +91,16 @@ def test_joints_and_surface_constraints_and_no_recompile(mesh):
     assert n >= before
 
 
+def _handles_and_surface_points(mesh, rng):
+    """8 handle vertices and 10 surface points (faces, barycentrics, points, normals) of `x`."""
+    v, x, top, _ = mesh
+    h = rng.choice(v.shape[0], 8, replace=False)
+    f = rng.choice(top.n_faces, 10, replace=False)
+    bary = rng.dirichlet(np.ones(3), 10)
+    pts = np.einsum("sa,sad->sd", bary, x[np.asarray(top.faces)[f]])
+    return h, f, bary, pts, np.asarray(bp.face_normals(x, top.faces))[f]
+
+
 def test_gauss_newton_jacobian_and_exact_preconditioner(mesh):
     """The residual the LM linearises (shell rows + constraint rows) has JVPs equal to central
     differences in float64; without parameters or joints the sparse LDLᵀ preconditioner is the
@@ -99,11 +109,7 @@ def test_gauss_newton_jacobian_and_exact_preconditioner(mesh):
     y = v * 1.1 + 0.05 * np.sin(3 * v)
     basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
     rng = np.random.default_rng(3)
-    h = rng.choice(v.shape[0], 8, replace=False)
-    f = rng.choice(top.n_faces, 10, replace=False)
-    bary = rng.dirichlet(np.ones(3), 10)
-    pts = np.einsum("sa,sad->sd", bary, x[np.asarray(top.faces)[f]])
-    nrm = np.asarray(bp.face_normals(x, top.faces))[f]
+    h, f, bary, pts, nrm = _handles_and_surface_points(mesh, rng)
     cons = pm.shell_constraints(
         handles=(h, x[h]), params=(np.array([0]), np.array([0.3])), surface=(f, bary, pts, nrm)
     )
@@ -137,17 +143,22 @@ class _RestScaled(eqx.Module):
         return self.rest * (1.0 + p["s"][0]) + p["s"][1] * jnp.sin(self.rest)
 
 
+def _two_leaf_problem(mesh):
+    """Targets reading the leaf `b` of the parameters, a rest mesh reading the leaf `s`."""
+    v, x, top, _ = mesh
+    y = v * 1.1 + 0.05 * np.sin(3 * v)
+    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
+    blend = _Blend(basis)
+    params0 = {"b": jnp.array([0.4, 0.2]), "s": jnp.array([0.05, 0.01])}
+    return (lambda p: blend(p["b"])), _RestScaled(jnp.asarray(v)), params0
+
+
 def test_parameter_gram_equals_the_dense_jacobian_gram(mesh):
     """The preconditioner's parameter block (targets read `b`, the rest mesh reads `s`, editing
     rows on both) equals `JᵀJ` of the whole residual's dense Jacobian over the parameters, and the
     static analysis finds the leaf the rest mesh reads."""
     v, x, top, solver = mesh
-    y = v * 1.1 + 0.05 * np.sin(3 * v)
-    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
-    blend = _Blend(basis)
-    targets = lambda p: blend(p["b"])  # noqa: E731
-    rest = _RestScaled(jnp.asarray(v))
-    params0 = {"b": jnp.array([0.4, 0.2]), "s": jnp.array([0.05, 0.01])}
+    targets, rest, params0 = _two_leaf_problem(mesh)
     assert pm._solve._leaves_read(rest, params0) == [False, True]
     h = np.random.default_rng(5).choice(v.shape[0], 8, replace=False)
     cons = pm.shell_constraints(handles=(h, x[h]), params=(np.array([0, 3, 3]), np.zeros(3)))
@@ -175,18 +186,9 @@ def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh)
     ones the colouring JVPs extract) equals the product through the whole linearised residual,
     with parameters the targets and the rest mesh read and every constraint type."""
     v, x, top, solver = mesh
-    y = v * 1.1 + 0.05 * np.sin(3 * v)
-    basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
-    blend = _Blend(basis)
-    targets = lambda p: blend(p["b"])  # noqa: E731
-    rest = _RestScaled(jnp.asarray(v))
-    params0 = {"b": jnp.array([0.4, 0.2]), "s": jnp.array([0.05, 0.01])}
+    targets, rest, params0 = _two_leaf_problem(mesh)
     rng = np.random.default_rng(7)
-    h = rng.choice(v.shape[0], 8, replace=False)
-    f = rng.choice(top.n_faces, 10, replace=False)
-    bary = rng.dirichlet(np.ones(3), 10)
-    pts = np.einsum("sa,sad->sd", bary, x[np.asarray(top.faces)[f]])
-    nrm = np.asarray(bp.face_normals(x, top.faces))[f]
+    h, f, bary, pts, nrm = _handles_and_surface_points(mesh, rng)
     ji = rng.choice(v.shape[0], (3, 5), replace=False)
     jc = rng.dirichlet(np.ones(5), 3)
     cons = pm.shell_constraints(
