@@ -461,27 +461,25 @@ def _param_gram(targets, rest, params0, p0, V0, cons, topology, cfg, unravel):
     ir, io = np.flatnonzero(read), np.flatnonzero(~read)
     eye = jnp.eye(P, dtype=p0.dtype)
 
-    def shell_of_p(p):
-        pt = unravel(p)
-        r0 = rest(pt) if callable(rest) else rest
-        s, b = _residuals(V0, r0, targets(pt), topology, cfg.bending, cfg.bending_stiffness,
-                          cfg.fold_eps)  # fmt: skip
+    def rest_of(pt):
+        return rest(pt) if callable(rest) else rest
+
+    def shell(r0, x):  # (2E,) stretch and bend rows at V0 for a rest mesh and targets
+        s, b = _residuals(V0, r0, x, topology, cfg.bending, cfg.bending_stiffness, cfg.fold_eps)
         return jnp.concatenate([s, b])
 
     cols = []
     if ir.size:  # through the whole shell residual
+        def shell_of_p(p):
+            pt = unravel(p)
+            return shell(rest_of(pt), targets(pt))
+
         cols.append(jax.vmap(lambda t: jax.jvp(shell_of_p, (p0,), (t,))[1])(eye[ir]))
     if io.size:  # D · ∂X/∂p
         pt0 = unravel(p0)
-        r0 = rest(pt0) if callable(rest) else rest
+        r0 = rest_of(pt0)
         x0 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), targets(pt0))
-
-        def shell_of_x(x):
-            s, b = _residuals(V0, r0, x, topology, cfg.bending, cfg.bending_stiffness,
-                              cfg.fold_eps)  # fmt: skip
-            return jnp.concatenate([s, b])
-
-        _, dsb = jax.jvp(shell_of_x, (x0,), (jax.tree.map(jnp.ones_like, x0),))
+        _, dsb = jax.jvp(lambda x: shell(r0, x), (x0,), (jax.tree.map(jnp.ones_like, x0),))
 
         def tflat(p):
             x = targets(unravel(p))
