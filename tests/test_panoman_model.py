@@ -99,6 +99,27 @@ def test_model_neutral_coefficients_and_mlps(trained):
     assert e_neutral < e_zero
     rla = pm.model_targets(m, *m.neutral(), correct=False)
     assert np.abs(np.asarray(rla.lengths)).mean() < np.abs(np.asarray(m.mean_lengths)).mean()
+    # `moving`: the same targets; derivatives only for the moving rows (a fit block's β)
+    bl, ba = (jnp.asarray(x, jnp.float64) for x in m.with_body(jnp.full(6, 0.3), jnp.full(6, -0.2)))
+    body = m.part_slice("body")
+    full = pm.model_targets(m, bl, ba)
+    part = pm.model_targets(m, bl, ba, moving=body)
+    np.testing.assert_allclose(part.concat(), full.concat(), rtol=1e-12, atol=1e-12)
+
+    def jac(moving):
+        return jax.jacfwd(lambda b: pm.model_targets(m, b, ba, moving=moving).concat())(bl)
+
+    j_full, j_part = np.asarray(jac(None)), np.asarray(jac(body))
+    np.testing.assert_allclose(j_part[:, body], j_full[:, body], rtol=1e-10, atol=1e-12)
+    assert not np.any(j_part[:, body.stop :]) and np.any(j_full[:, body.stop :])
+
+
+@needs_data
+@pytest.mark.bad_input
+def test_model_targets_bad_moving(trained):
+    m = trained[2].value
+    with pytest.raises(ValueError, match="moving"):
+        pm.model_targets(m, *m.neutral(), moving=(0, 6))
 
 
 @needs_data

@@ -328,6 +328,11 @@ def model_targets(
     the rows inside multiply only those rows of the component matrices (each block of
     [`bodyprior.panoman.fit_panoman`][] moves one part's coefficients; the correction MLP still
     sees all body coefficients)."""
+    if moving is not None and not isinstance(moving, slice):
+        raise ValueError(
+            f"`moving` must be a slice of component rows (e.g. model.part_slice('body')) or None, "
+            f"got {type(moving).__name__}."
+        )
     bl = jnp.asarray(beta_lengths)
     ba = jnp.asarray(beta_angles)
     dt = model.components_lengths.dtype
