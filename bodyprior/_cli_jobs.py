@@ -80,10 +80,10 @@ def cmd_register(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # NRD and the fit's solves run in float64
-    import jax.numpy as jnp
 
     from . import registration, sscape
     from ._io import atomic_write_json, write_ply
+    from ._validate import as_device_array
 
     t_start = time.perf_counter()
     scan_paths = _files(args.scans, SCAN_EXTENSIONS, "scans")
@@ -141,8 +141,8 @@ def cmd_register(args) -> int:
     reports = []
     for i, (p, scan, info) in enumerate(zip(scan_paths, scans, infos)):
         stem = _stem(p)
-        fe_fit = registration.fitting_error(jnp.asarray(reg.fit_vertices[i]), scan, faces=faces)
-        fe = registration.fitting_error(jnp.asarray(final[i]), scan, faces=faces)
+        fe_fit = registration.fitting_error(as_device_array(reg.fit_vertices[i]), scan, faces=faces)
+        fe = registration.fitting_error(as_device_array(final[i]), scan, faces=faces)
         err, valid = np.asarray(fe.error_mm), np.asarray(fe.valid)
         lm = np.asarray(scan.landmark_mask)
         lm_d = np.linalg.norm(

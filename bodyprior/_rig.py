@@ -21,17 +21,17 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._kinematics import validate_parents
 from ._skinning import dqs, lbs
-from ._validate import check_array, is_tracer
+from ._validate import as_device_array, check_array, is_tracer
 
 __all__ = ["Rig"]
 
 
 def _int_leaf(x):
-    return jnp.asarray(x, dtype=jnp.int32)
+    return as_device_array(x, dtype=jnp.int32)
 
 
 def _float_leaf(x):
-    return jnp.asarray(x)
+    return as_device_array(x)
 
 
 class Rig(eqx.Module):

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Int
 
-from ._validate import check_array, is_tracer
+from ._validate import as_device_array, check_array, is_tracer
 
 __all__ = ["Topology"]
 
@@ -198,13 +198,13 @@ class Topology(eqx.Module):
         one_ring = np.full((n_vertices, max(int(valence.max()), 1)), -1, dtype=np.int64)
         one_ring[a, col] = b
 
-        i32 = lambda x: jnp.asarray(x, dtype=jnp.int32)
+        i32 = lambda x: as_device_array(x, dtype=jnp.int32)
         return cls(
             faces=i32(faces),
             edges=i32(edges),
             edge_faces=i32(edge_faces),
             edge_opposite=i32(edge_opposite),
-            interior=jnp.asarray(interior),
+            interior=as_device_array(interior),
             face_edges=i32(face_edges),
             one_ring=i32(one_ring),
             valence=i32(valence),

@@ -19,6 +19,24 @@ def is_tracer(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
+def as_device_array(x, dtype=None) -> jax.Array:
+    """`jnp.asarray(x, dtype)`, without a compiled program for host (NumPy) values.
+
+    In jax 0.10 `jnp.asarray` of a NumPy array runs a small jitted program (`stage`, plus
+    `convert_element_type` for a dtype change) compiled once per shape and dtype, 10-20 ms each: a
+    `bodyprior register` start spent ~0.7 s in ~45 of them (2026-12-07). NumPy values are cast on
+    the host and moved with `jax.device_put` (~1 ms; the dtype canonicalised as `jnp.asarray` does,
+    float64 -> float32 without x64). Anything else (tracers, JAX arrays, Python scalars and lists)
+    goes to `jnp.asarray`.
+    """
+    if not isinstance(x, (np.ndarray, np.generic)):
+        import jax.numpy as jnp
+
+        return jnp.asarray(x, dtype)
+    a = np.asarray(x) if dtype is None else np.asarray(x, dtype=np.dtype(dtype))
+    return jax.device_put(a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False))
+
+
 def _shape_str(shape: Sequence[int | str | None]) -> str:
     return (
         "("

@@ -138,8 +138,12 @@ def cache_dir() -> str:
 def enable_compilation_cache(path: str | None = None) -> str:
     """Turns on JAX's persistent compilation cache at `path` (default [`cache_dir`][]): compiled
     programs that took at least 0.5 s to compile are written there and reused by later processes
-    with the same JAX version, backend and program. The API does not do this by itself; call this
-    (or set `jax.config.update("jax_compilation_cache_dir", ...)`) at the top of a script.
+    with the same JAX version, backend and program. The whole-algorithm entry points that take
+    seconds to trace (the batched S-SCAPE fit, NRD, the fitting error) are also exported with
+    `jax.export` to `<path>/exported` and loaded from there by later processes, which skips their
+    Python tracing and lowering as well (see `bodyprior._aot`; results are identical). The API does
+    not do this by itself; call this at the top of a script (`jax_compilation_cache_dir` alone
+    gives the compile cache without the exports).
 
     **Returns:** the directory used.
     """
@@ -150,6 +154,9 @@ def enable_compilation_cache(path: str | None = None) -> str:
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    from ._aot import set_export_directory
+
+    set_export_directory(os.path.join(path, "exported"))
     return path
 
 

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._aot import aot_filter_jit
 from .._geometry import vertex_normals
 from .._validate import check_array, is_tracer
 from ._grid import nearest_within
@@ -153,7 +154,7 @@ def _fitting_error_kernel(
     return FittingError(jnp.where(ok, dist_mm, 0.0), ok, idx)
 
 
-@eqx.filter_jit
+@aot_filter_jit
 def _fitting_error_jit(vertices, faces, points, pnormals, pmask, max_dist, cos_max, search):
     normals = vertex_normals(vertices, faces)
     return _fitting_error_kernel(

@@ -97,11 +97,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._aot import aot_filter_jit
 from .._geometry import vertex_normals
 from .._linalg import pcg
 from .._solution import RESULTS, Solution, _check
 from .._store import register_type
-from .._validate import check_array, named_preset
+from .._validate import as_device_array, check_array, named_preset
 from ._grid import _REACH, _CompatibleRule, _Grid, _grid_build, _grid_search
 from ._scan import check_scan
 from ._template import RegistrationTemplate
@@ -428,13 +429,13 @@ def _prepare(tmpl: RegistrationTemplate, n_patches: int) -> NRDPrep:
         patch, k = np.zeros(verts.shape[0], np.int32), 0
     return NRDPrep(
         template=tmpl,
-        nbr=jnp.asarray(nbr),
-        nbr_mask=jnp.asarray(mask),
-        group=jnp.asarray(group),
-        data_ok=jnp.asarray(~hand),
-        head_cand=jnp.asarray(head_cand),
-        anchors=jnp.asarray(anchors),
-        patch=jnp.asarray(patch),
+        nbr=as_device_array(nbr),
+        nbr_mask=as_device_array(mask),
+        group=as_device_array(group),
+        data_ok=as_device_array(~hand),
+        head_cand=as_device_array(head_cand),
+        anchors=as_device_array(anchors),
+        patch=as_device_array(patch),
         plane_sign=float(sign),
         n_patches=int(k),
         requested_patches=int(n_patches),
@@ -805,7 +806,7 @@ def _run(
     return Solution(fit, result, stats)
 
 
-@eqx.filter_jit
+@aot_filter_jit
 def _nrd_jit(init, prep, lm_v, lm_use, scan_arrays, cfg):
     return _run(init, prep, lm_v, lm_use, *scan_arrays, cfg)
 

@@ -58,7 +58,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from tqdm.auto import tqdm
 
-from .._validate import check_array, is_tracer
+from .._validate import as_device_array, check_array, is_tracer
 
 __all__ = [
     "Scan",
@@ -646,7 +646,9 @@ def pad_scans(
             cols["point_mask"].append(np.concatenate([m, np.zeros(n - m.shape[0], bool)]))
             cols["landmarks"].append(np.asarray(s.landmarks))
             cols["landmark_mask"].append(np.asarray(s.landmark_mask))
-        return Scan(**{k: jnp.asarray(np.stack(c)) for k, c in cols.items()}, landmark_names=names)
+        return Scan(
+            **{k: as_device_array(np.stack(c)) for k, c in cols.items()}, landmark_names=names
+        )
     cols = dict(face=[], bary=[], is_outlier=[], true_points=[])
     for t in scans:
         P = t.face.shape[0]

@@ -17,10 +17,10 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from .._io import atomic_open, read_mesh, write_obj, write_ply
+from .._validate import as_device_array
 from ._scan import Scan, _unit, _vertex_normals_np, check_scan, estimate_normals
 
 __all__ = ["read_scan", "write_scan", "read_lnd", "write_lnd", "detect_units"]
@@ -291,11 +291,11 @@ def read_scan(
                 lpos[i] = q * ls
                 lmask[i] = True
     scan = Scan(
-        points=jnp.asarray(pts),
-        normals=jnp.asarray(nrm),
-        point_mask=jnp.ones(pts.shape[0], dtype=bool),
-        landmarks=jnp.asarray(lpos),
-        landmark_mask=jnp.asarray(lmask),
+        points=as_device_array(pts),
+        normals=as_device_array(nrm),
+        point_mask=as_device_array(np.ones(pts.shape[0], dtype=bool)),
+        landmarks=as_device_array(lpos),
+        landmark_mask=as_device_array(lmask),
         landmark_names=names,
     )
     check_scan(scan, min_points=min_points, name="scan")

@@ -49,6 +49,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from .._aot import aot_filter_jit
+
 __all__ = ["batch_map"]
 
 _AXIS = "scan"
@@ -71,7 +73,7 @@ def _run_vmap(kernel, replicated, chunk):
     return jax.vmap(kernel, in_axes=(None, 0))(replicated, chunk)
 
 
-@eqx.filter_jit
+@aot_filter_jit
 def _run_map(kernel, replicated, chunk):
     # One item after another: each runs its own number of loop iterations (a vmapped while loop
     # runs every item until the slowest one stops, masked), which on a CPU is the faster choice.

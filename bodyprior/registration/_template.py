@@ -35,6 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._rig import Rig, RigHolder
 from .._topology import Topology
+from .._validate import as_device_array
 
 # Bones whose skinned vertices count as "hand" (excluded from fitting data terms, as humanshape
 # does).
@@ -126,7 +127,7 @@ class RegistrationTemplate(RigHolder):
         hand = np.asarray(self.hand_mask, bool)
         v = np.array([lm_idx[where[n]] if n in where else 0 for n in names], np.int32)
         use = np.array([n in where for n in names], bool) & ~hand[v]
-        return jnp.asarray(v), jnp.asarray(use)
+        return as_device_array(v), as_device_array(use)
 
 
 @functools.lru_cache(maxsize=8)
@@ -398,7 +399,7 @@ def _load_precomputed(rig: str, decimated: bool, x64: bool) -> RegistrationTempl
     arrays, meta = read
     name = _variant(rig, decimated, x64)
     info = meta["variants"][name]
-    a = {f: jnp.asarray(arrays[f"{name}.{f}"]) for f in _FILE_ARRAYS}
+    a = {f: as_device_array(arrays[f"{name}.{f}"]) for f in _FILE_ARRAYS}
     return RegistrationTemplate(
         vertices=a["vertices"],
         topology=Topology.from_faces(np.asarray(a["faces"]), a["vertices"].shape[0]),

@@ -49,7 +49,7 @@ from tqdm.auto import tqdm
 
 from .._geometry import closest_points_on_mesh, mesh_ring_faces
 from .._store import register_type
-from .._validate import check_array, check_positive_int
+from .._validate import as_device_array, check_array, check_positive_int
 from ..registration import nearest_within
 from ..registration._evaluate import fitting_error_batch
 from ..registration._template import RegistrationTemplate
@@ -326,7 +326,7 @@ def register_sscape_nrd(
     prep = prepare_nrd(template, n_patches=nrd_config.n_patches)  # once for all scans
     for i in tqdm(range(n), desc="NRD", disable=not progress, unit="scan"):
         scan_i = jax.tree_util.tree_map(lambda a: a[i], scans)
-        r = nrd(jnp.asarray(fits.vertices[i]), scan_i, prep, config=nrd_config, throw=False)
+        r = nrd(as_device_array(fits.vertices[i]), scan_i, prep, config=nrd_config, throw=False)
         out.append(np.asarray(r.value.vertices))
         ok[i] &= not bool(r.failed)
     return Registration(

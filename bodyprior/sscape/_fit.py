@@ -68,7 +68,7 @@ from .._geometry import vertex_normals
 from .._kinematics import Similarity, umeyama
 from .._solution import RESULTS, Solution, _check
 from .._store import register_type
-from .._validate import check_array, is_tracer, named_preset
+from .._validate import as_device_array, check_array, is_tracer, named_preset
 from ..registration._grid import nearest_within
 from ..registration._scan import Scan, check_scan
 from ..registration._template import RegistrationTemplate
@@ -802,7 +802,7 @@ def _prepare(model, scan, template, config, shape_residual, init, batched: bool)
         if config.exclude_hands
         else np.zeros(template.n_vertices, bool)
     )
-    st = _Static(jnp.asarray(vertex), jnp.asarray(known), jnp.asarray(exclude), free)
+    st = _Static(as_device_array(vertex), as_device_array(known), as_device_array(exclude), free)
     model = _as_float64(model)
 
     # Initial parameters.

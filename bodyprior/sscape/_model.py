@@ -18,7 +18,7 @@ from .._kinematics import Similarity, forward_kinematics
 from .._rig import Rig, RigHolder
 from .._rotations import euler_to_matrix, rotation_to_matrix
 from .._skinning import lbs
-from .._validate import check_array, is_tracer
+from .._validate import as_device_array, check_array, is_tracer
 
 _REP_SHAPES = {
     "axis_angle": (3,),
@@ -29,11 +29,11 @@ _REP_SHAPES = {
 
 
 def _float_leaf(x):
-    return jnp.asarray(x)
+    return as_device_array(x)
 
 
 def _int_leaf(x):
-    return jnp.asarray(x, dtype=jnp.int32)
+    return as_device_array(x, dtype=jnp.int32)
 
 
 class SScapeModel(RigHolder):
