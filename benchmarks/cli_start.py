@@ -8,6 +8,10 @@ CAESAR `.lnd`; then `bodyprior register` runs in fresh subprocesses:
 - `cold`: with an empty cache directory (compiles and writes the cache);
 - `warm`: with that cache filled (the second process on a machine), `--repeats` times.
 
+The cache directory holds JAX's compiled programs and, under `exported/`, the whole-algorithm
+programs exported with `jax.export` (the fit, NRD, fitting error), which a warm process loads
+without tracing them (`bodyprior/_aot.py`).
+
 Reported per run: the process wall time, and from the job's own report the time to read the scan
 and to fit + refine it. `time_to_first_fit_s` is the wall time minus the writing of the outputs
 after the fit (the registered mesh, JSON, error map), i.e. from process start to the refined fit.
@@ -98,15 +102,24 @@ def main(argv=None):
     warm = [_run(scan, os.path.join(work, f"w{i}"), cache, env) for i in range(args.repeats)]
     res["warm_runs"] = warm
     res["warm"] = {k: float(np.median([w[k] for w in warm])) for k in warm[0]}
-    res["cache_mb"] = round(
-        sum(os.path.getsize(os.path.join(cache, f)) for f in os.listdir(cache)) / 2**20, 2
+    sizes = {
+        os.path.relpath(os.path.join(d, f), cache): os.path.getsize(os.path.join(d, f))
+        for d, _, files in os.walk(cache) for f in files
+    }  # fmt: skip
+    res["cache_mb"] = round(sum(sizes.values()) / 2**20, 2)
+    res["exported_mb"] = round(
+        sum(v for k, v in sizes.items() if k.startswith("exported" + os.sep)) / 2**20, 2
     )
     res["speedup_first_fit_warm_vs_no_cache"] = round(
         res["no_cache"]["time_to_first_fit_s"] / res["warm"]["time_to_first_fit_s"], 2
     )
     with open(args.json, "w") as f:
         json.dump(res, f, indent=1)
-    print(json.dumps({k: res[k] for k in ("no_cache", "cold", "warm", "cache_mb")}, indent=1))
+    print(
+        json.dumps(
+            {k: res[k] for k in ("no_cache", "cold", "warm", "cache_mb", "exported_mb")}, indent=1
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -132,6 +132,7 @@ KEYS = {
         "warm.time_to_first_fit_s",
         "speedup_first_fit_warm_vs_no_cache",
         "cache_mb",
+        "exported_mb",
     ],
     "fit_search": [
         "grid.median_s",
