@@ -54,3 +54,21 @@ def test_reconstruct_validates_before_fitting():
         pm.reconstruct(kit.model, np.zeros((kit.n_joints, 3)))
     with pytest.raises(ValueError, match="recipe"):
         pm.build_default_panoman("/nonexistent/x.npz", n_bodies=3)
+
+
+@pytest.mark.bad_input
+def test_female_kit_location_and_errors(tmp_path, monkeypatch):
+    monkeypatch.setenv("BODYPRIOR_DATA", str(tmp_path / "data"))
+    assert pm.kit_path("female") == str(tmp_path / "data" / "panoman_female.npz")
+    assert pm.kit_path() == pm.kit_path("male") == pm._default.kit_path()
+    with pytest.raises(ValueError, match="build_model --sex female"):
+        pm.default_panoman(sex="female")
+    with pytest.raises(ValueError, match="`sex`"):
+        pm.default_panoman(sex="f")
+    with pytest.raises(ValueError, match="`sex`"):
+        pm.build_default_panoman(None, sex=2)
+    # a kit written there is what default_panoman(sex="female") loads (here: the male one)
+    os.makedirs(tmp_path / "data")
+    with open(pm.kit_path("male"), "rb") as src, open(pm.kit_path("female"), "wb") as dst:
+        dst.write(src.read())
+    assert pm.default_panoman(sex="female").model.part_sizes == pm.RECIPE["k"]

@@ -54,6 +54,7 @@ from ._default import PanoManKit as PanoManKit
 from ._default import TrainingSplit as TrainingSplit
 from ._default import build_default_panoman as build_default_panoman
 from ._default import default_panoman as default_panoman
+from ._default import kit_path as kit_path
 from ._default import load_kit as load_kit
 from ._default import make_kit as make_kit
 from ._default import make_training_split as make_training_split
@@ -121,6 +122,7 @@ __all__ = [
     "TrainingSplit",
     "build_default_panoman",
     "default_panoman",
+    "kit_path",
     "load_kit",
     "make_kit",
     "make_training_split",

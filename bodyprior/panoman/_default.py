@@ -329,22 +329,52 @@ def load_kit(path: str | os.PathLike) -> PanoManKit:
                       info=str(km.get("info", "{}")))  # fmt: skip
 
 
-def kit_path() -> str:
-    """Path of the shipped kit file (`bodyprior/assets/panoman_male.npz`)."""
-    from ..assets import asset_path
-
-    return os.path.join(os.path.dirname(asset_path()), KIT_FILE)
+_SEXES = {"male": 0, "female": 1}
 
 
-def default_panoman(*, return_info: bool = False) -> PanoManKit | tuple[PanoManKit, dict]:
-    """The shipped PanoMan kit (module docstring): a male model on the 6,449-vertex decimated
-    topology with its joint regressor and LBS initialiser. `return_info=True` also returns its
-    provenance dict. Loading takes about 2 s (the decoder's factorisation).
+def _check_sex(sex: str) -> str:
+    if sex not in _SEXES:
+        raise ValueError(f"`sex` must be 'male' or 'female', got {sex!r}.")
+    return sex
 
-    **Raises:** `ValueError` if the file is missing or corrupted."""
-    path = kit_path()
+
+def kit_path(sex: str = "male") -> str:
+    """Path of the PanoMan kit of `sex`: the male kit ships with the package
+    (`bodyprior/assets/panoman_male.npz`); the female kit (the same recipe on female identities) is
+    built on the user's machine by `python -m bodyprior.panoman.build_model --sex female` into
+    `$BODYPRIOR_DATA` (default `$XDG_DATA_HOME/bodyprior` or `~/.local/share/bodyprior`) as
+    `panoman_female.npz`: a second 23 MiB asset in every install and in the repository's history
+    for a model that a command rebuilds in ~6 minutes."""
+    if _check_sex(sex) == "male":
+        from ..assets import asset_path
+
+        return os.path.join(os.path.dirname(asset_path()), KIT_FILE)
+    root = os.environ.get("BODYPRIOR_DATA") or os.path.join(
+        os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share"),
+        "bodyprior",
+    )
+    return os.path.join(os.path.abspath(os.path.expanduser(root)), "panoman_female.npz")
+
+
+def default_panoman(
+    *, sex: str = "male", return_info: bool = False
+) -> PanoManKit | tuple[PanoManKit, dict]:
+    """The default PanoMan kit of `sex` (module docstring): a model on the 6,449-vertex decimated
+    topology with its joint regressor and LBS initialiser; `"male"` ships, `"female"` is built once
+    by `python -m bodyprior.panoman.build_model --sex female` (see [`kit_path`][]).
+    `return_info=True` also returns its provenance dict. Loading takes about 2 s (the decoder's
+    factorisation).
+
+    **Raises:** `ValueError` if `sex` is not `"male"` / `"female"`, or the file is missing or
+    corrupted (the message gives the command that builds it)."""
+    path = kit_path(sex)
     if not os.path.exists(path):
-        raise ValueError(f"the shipped PanoMan kit is missing at {path!r}; {_REBUILD}.")
+        if sex == "male":
+            raise ValueError(f"the shipped PanoMan kit is missing at {path!r}; {_REBUILD}.")
+        raise ValueError(
+            f"no female PanoMan kit at {path!r}: build it once (about 6 minutes on 2 cores) with "
+            "`python -m bodyprior.panoman.build_model --sex female`."
+        )
     kit = load_kit(path)
     info = kit.info_dict()
     if info.get("sources") not in (None, template_sources()):
@@ -361,8 +391,8 @@ def build_default_panoman(
 ) -> dict:
     """Trains the shipped kit with [`bodyprior.panoman.RECIPE`][] (`overrides`: its fields, for
     quick checks) on the CMU clips under `mocap_dir` (default [`bodyprior.find_mocap_dir`][]) and
-    writes it atomically to `path` (default: the shipped location), float16. **Returns:** the
-    provenance dict.
+    writes it atomically to `path` (default: [`kit_path`][] of the recipe's sex: the shipped
+    location for `sex=0`), float16. **Returns:** the provenance dict.
 
     **Raises:** `ValueError` if no mocap folder is found or an override is not a recipe field."""
     from .._mocap import find_mocap_dir, mocap_checksums
@@ -371,12 +401,16 @@ def build_default_panoman(
     if bad:
         raise ValueError(f"unknown recipe fields {bad}; the recipe has {sorted(RECIPE)}.")
     recipe = dict(RECIPE, **overrides)
+    sex = {0: "male", 1: "female"}.get(recipe["sex"])
+    if sex is None:
+        raise ValueError(f"`sex` must be 0 (male) or 1 (female), got {recipe['sex']!r}.")
     root = mocap_dir if mocap_dir is not None else find_mocap_dir()
     if root is None or not os.path.isdir(os.fspath(root)):
         raise ValueError(
             "`mocap_dir`: no CMU mocap folder found; pass --mocap DIR or set $BODYPRIOR_MOCAP_DIR."
         )
-    path = os.path.abspath(path or kit_path())
+    path = os.path.abspath(path or kit_path(sex))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
     t0 = time.perf_counter()
     split = make_training_split(root, progress=progress, **recipe)
     sol = train_split(split, progress=progress, **recipe)
