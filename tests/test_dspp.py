@@ -355,6 +355,10 @@ def test_bad_monitor_and_preset_inputs():
         dspp.DSPPConfig(generator_learning_rate=-1.0)
     with pytest.raises(ValueError, match="monitor_every"):
         dspp.DSPPConfig(monitor_every=0)
+    with pytest.raises(ValueError, match="generator_ema"):
+        dspp.DSPPConfig(generator_ema=1.0)
+    with pytest.raises(ValueError, match="generator_ema"):
+        dspp.DSPPConfig(generator_ema=True)
     with pytest.raises(ValueError, match="`name`"):
         dspp.DSPPConfig.preset("vposer")
     cfg = _cfg()
@@ -366,3 +370,36 @@ def test_bad_monitor_and_preset_inputs():
     with pytest.raises(ValueError, match="at least 2"):
         dspp.train_pose_prior(_poses(), key=jr.PRNGKey(0), config=cfg,
                               validation=np.zeros((1, 20, 3)))  # fmt: skip
+
+
+@pytest.mark.parametrize("which", ["aegan_pose", "geomgan_pose"])
+def test_generator_ema_averages_without_changing_training(tmp_path, which):
+    # generator_ema = d: the returned generator is d * (before) + (1 - d) * (after the step) per
+    # weight after one cycle, the rest of the model is the plain run's, and a resumed run equals
+    # an uninterrupted one (the average is in the checkpoint).
+    def train(steps, ema, ckpt=None):
+        cfg = _cfg(n_steps=steps, generator_ema=ema, steps_per_call=1, checkpoint_every=1)
+        if which == "aegan_pose":
+            sol = dspp.train_pose_prior(_poses(), key=jr.PRNGKey(3), config=cfg,
+                                        checkpoint_dir=ckpt, progress=False)  # fmt: skip
+        else:
+            sol = dspp.train_geometry_gan(_poses(), kind="pose", key=jr.PRNGKey(3), config=cfg,
+                                          checkpoint_dir=ckpt, progress=False)  # fmt: skip
+        return sol.value
+
+    init, plain, avg = train(0, 0.0), train(1, 0.0), train(1, 0.3)
+    for g0, g1, ge in zip(_leaves(init.generator), _leaves(plain.generator),
+                          _leaves(avg.generator)):  # fmt: skip
+        np.testing.assert_allclose(ge, 0.3 * g0 + 0.7 * g1, rtol=1e-6, atol=1e-7)
+    assert any(not np.array_equal(a, b) for a, b in
+               zip(_leaves(init.generator), _leaves(plain.generator)))  # fmt: skip
+    for a, b in zip(_leaves(plain.discriminator), _leaves(avg.discriminator)):
+        np.testing.assert_array_equal(a, b)
+    full = train(3, 0.5)
+    train(2, 0.5, tmp_path)
+    resumed = train(3, 0.5, tmp_path)
+    for a, b in zip(_leaves(full), _leaves(resumed)):
+        np.testing.assert_array_equal(a, b)
+    # the field round-trips through a prior file
+    dspp.save_prior(tmp_path / "p.dspp", full)
+    assert dspp.load_prior(tmp_path / "p.dspp").config.generator_ema == 0.5

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -161,6 +162,23 @@ class _TrainState(eqx.Module):
     opt_g: optax.OptState
     key: Array
     step: Array
+    gen_ema: Any = None  # the averaged generator (`generator_ema` > 0), else None
+
+    def output_model(self):
+        """The model to sample: with the averaged generator when there is one."""
+        if self.gen_ema is None:
+            return self.model
+        return dataclasses.replace(self.model, generator=self.gen_ema)
+
+
+def _ema_update(ts: _TrainState, gen, cfg: DSPPConfig):
+    if ts.gen_ema is None:
+        return None
+    d = cfg.generator_ema
+    avg = jax.tree_util.tree_map(
+        lambda e, g: d * e + (1.0 - d) * g, _params(ts.gen_ema), _params(gen)
+    )
+    return eqx.combine(avg, gen)
 
 
 def _adam(cfg: DSPPConfig, part: str) -> optax.GradientTransformation:
@@ -235,7 +253,7 @@ def _aegan_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig):
         m, encoder=enc, decoder=dec, generator=gen, discriminator=disc, disc_state=state
     )
     rec = jnp.stack([l_ae * m.scale**2, l_d, l_g, p_real, p_fake]).astype(jnp.float32)
-    return _TrainState(m, opt_ae, opt_d, opt_g, key, ts.step + 1), rec
+    return _TrainState(m, opt_ae, opt_d, opt_g, key, ts.step + 1, _ema_update(ts, gen, cfg)), rec
 
 
 def _geometry_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig):
@@ -278,7 +296,7 @@ def _geometry_cycle(ts: _TrainState, data: Float[Array, "N D"], cfg: DSPPConfig)
     m = dataclasses.replace(m, generator=gen, discriminator=disc, disc_state=state)
     nan = jnp.full((), jnp.nan, jnp.float32)
     rec = jnp.stack([nan, l_d, l_g, p_real, p_fake]).astype(jnp.float32)
-    return _TrainState(m, None, opt_d, opt_g, key, ts.step + 1), rec
+    return _TrainState(m, None, opt_d, opt_g, key, ts.step + 1, _ema_update(ts, gen, cfg)), rec
 
 
 @eqx.filter_jit
@@ -313,6 +331,7 @@ def _init_state(kind: str, model_kind: str, mean, scale, cfg: DSPPConfig, key) -
     return _TrainState(
         model, opt_ae, _adam(cfg, "d").init(_params(model.discriminator)),
         _adam(cfg, "g").init(_params(model.generator)), k_train, jnp.zeros((), jnp.int32),
+        model.generator if cfg.generator_ema > 0 else None,
     )  # fmt: skip
 
 
@@ -403,7 +422,7 @@ def _train(
                        f"training {tag} (non-finite loss in steps {step - n}..{step})")  # fmt: skip
                 break
             if monitor is not None and (step % mon_every == 0 or step == cfg.n_steps):
-                row = monitor(ts.model, step)
+                row = monitor(ts.output_model(), step)
                 if progress:
                     bar.write(f"{tag} cycle {step}: validation 1-NNA {row[1]:.3f}, diversity "
                               f"{row[2]:.1f} (validation {row[3]:.1f})")  # fmt: skip
@@ -413,7 +432,7 @@ def _train(
                                 monitor=mon)  # fmt: skip
     mon_rows = monitor.rows_array() if monitor is not None else None
     log = TrainLog.from_records(np.concatenate(chunks), time.perf_counter() - t0, mon_rows)
-    value, best_step = ts.model, -1
+    value, best_step = ts.output_model(), -1
     if monitor is not None and monitor.best is not None:
         best_step = monitor.best_step
         if select == "best":
