@@ -53,6 +53,12 @@ def test_dspp_experiment_tiny(tmp_path):
         assert m[f"best_step_{job}"] in m[f"monitor_step_{job}"]
         assert all(0.0 <= v <= 1.0 for v in m[f"monitor_1nna_{job}"])
     assert m["pose_n_val"] > 0 and m["shape_n_val"] > 0
+    # the pose rows' 1-NNA over repeated draws: the first is the table's, the mean is theirs
+    for meth in (*METHODS, "aegan_paper", "geomgan_paper"):
+        draws = m[f"pose_1nna_draws_{meth}"]
+        assert len(draws) == 5 and draws[0] == m[f"pose_1nna_{meth}"]
+        assert abs(m[f"pose_1nna_mean_{meth}"] - sum(draws) / 5) < 1e-12
+        assert m[f"pose_1nna_sd_{meth}"] >= 0.0
     for name in ("loss_aegan_shape", "loss_geomgan_shape", "loss_aegan_pose", "loss_geomgan_pose",
                  "loss_aegan_pose_paper", "shape_samples", "pose_samples"):  # fmt: skip
         png = out / f"{name}.png"
