@@ -236,7 +236,7 @@ class aot_filter_jit:
         functools.update_wrapper(self, fn)
         self._fn = fn
         self._jit = eqx.filter_jit(fn)
-        self._programs: dict[str, _Program] = {}
+        self._programs: dict[str, _Program | None] = {}
 
     def __get__(self, obj, objtype=None):
         return self if obj is None else functools.partial(self, obj)
@@ -248,15 +248,15 @@ class aot_filter_jit:
         key = _signature(self._fn, leaves, treedef)
         if key is None:
             return self._jit(*args)
-        prog = self._programs.get(key)
-        if prog is None:
+        if key not in self._programs:
             path = os.path.join(_settings.directory, f"{self._fn.__qualname__}-{key[:32]}.jexp")
             prog = _load(path, key)
             if prog is None:
                 prog = self._export(path, key, leaves, treedef)
-            if prog is None:
-                return self._jit(*args)
-            self._programs[key] = prog
+            self._programs[key] = prog  # None: not exportable; not tried again in this process
+        prog = self._programs[key]
+        if prog is None:
+            return self._jit(*args)
         return _fill(prog.skeleton, prog.call(*[x for x in leaves if eqx.is_array(x)]))
 
     def _export(self, path: str, key: str, leaves: list, treedef) -> _Program | None:

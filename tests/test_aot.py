@@ -103,6 +103,12 @@ def test_aot_falls_back_for_host_callbacks(export_dir):
     g = aot_filter_jit(f)
     np.testing.assert_array_equal(g(np.ones(3)), 2.0 * np.ones(3))
     assert _entries(export_dir) == [] and len(seen) == 1
+    # the refusal is remembered: the next call neither exports nor re-traces
+    tries = []
+    orig = g._export
+    g._export = lambda *a: tries.append(1) or orig(*a)
+    np.testing.assert_array_equal(g(np.ones(3)), 2.0 * np.ones(3))
+    assert tries == [] and len(seen) == 2
 
 
 def test_aot_off_is_filter_jit():
