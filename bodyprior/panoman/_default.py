@@ -361,7 +361,8 @@ def default_panoman(
 ) -> PanoManKit | tuple[PanoManKit, dict]:
     """The default PanoMan kit of `sex` (module docstring): a model on the 6,449-vertex decimated
     topology with its joint regressor and LBS initialiser; `"male"` ships, `"female"` is built once
-    by `python -m bodyprior.panoman.build_model --sex female` (see [`kit_path`][]).
+    by `python -m bodyprior.panoman.build_model --sex female` (see
+    [`bodyprior.panoman.kit_path`][]).
     `return_info=True` also returns its provenance dict. Loading takes about 2 s (the decoder's
     factorisation).
 
@@ -391,8 +392,8 @@ def build_default_panoman(
 ) -> dict:
     """Trains the shipped kit with [`bodyprior.panoman.RECIPE`][] (`overrides`: its fields, for
     quick checks) on the CMU clips under `mocap_dir` (default [`bodyprior.find_mocap_dir`][]) and
-    writes it atomically to `path` (default: [`kit_path`][] of the recipe's sex: the shipped
-    location for `sex=0`), float16. **Returns:** the provenance dict.
+    writes it atomically to `path` (default: [`bodyprior.panoman.kit_path`][] of the recipe's
+    sex: the shipped location for `sex=0`), float16. **Returns:** the provenance dict.
 
     **Raises:** `ValueError` if no mocap folder is found or an override is not a recipe field."""
     from .._mocap import find_mocap_dir, mocap_checksums
