@@ -201,12 +201,6 @@ def _signature(fn: Callable, leaves: list, treedef) -> str | None:
 class _Slot:
     """Marks where an output array goes in a stored output skeleton."""
 
-    def __eq__(self, other):
-        return isinstance(other, _Slot)
-
-    def __hash__(self):
-        return 0
-
 
 @dataclasses.dataclass(frozen=True)
 class _Program:
@@ -237,9 +231,6 @@ class aot_filter_jit:
         self._fn = fn
         self._jit = eqx.filter_jit(fn)
         self._programs: dict[str, _Program | None] = {}
-
-    def __get__(self, obj, objtype=None):
-        return self if obj is None else functools.partial(self, obj)
 
     def __call__(self, *args):
         if _settings.directory is None or jax.device_count() != 1 or jax.process_count() != 1:

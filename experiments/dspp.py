@@ -302,7 +302,7 @@ def run(args) -> dict:
             draws.append(bp.generative_metrics(x, ref, bp.pose_geodesic_metric)["one_nna"])
         metrics[f"pose_1nna_draws_{m}"] = draws
         metrics[f"pose_1nna_mean_{m}"] = float(np.mean(draws))
-        metrics[f"pose_1nna_sd_{m}"] = float(np.std(draws, ddof=1)) if len(draws) > 1 else 0.0
+        metrics[f"pose_1nna_sd_{m}"] = float(np.std(draws, ddof=1))
     # Joint limits = the full range of each Euler angle over the training mocap (quantile 0), so
     # real poses violate them only where the test clips leave the training range (key `_test`);
     # `_q005` keys: limits at the 0.5 %/99.5 % quantiles (stricter; ~45 % of in-distribution poses

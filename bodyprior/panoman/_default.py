@@ -149,8 +149,7 @@ def make_training_split(
 
     if mesh not in ("decimated", "full"):
         raise ValueError(f"`mesh` must be 'decimated' or 'full', got {mesh!r}.")
-    if sex not in (0, 1):
-        raise ValueError(f"`sex` must be 0 (male) or 1 (female), got {sex!r}.")
+    _sex_name(sex)
     if not os.path.isdir(os.fspath(mocap_dir)):
         raise ValueError(f"`mocap_dir`: {os.fspath(mocap_dir)!r} is not a folder of BVH clips.")
     poses = load_mocap(os.fspath(mocap_dir), progress=progress)
@@ -329,11 +328,18 @@ def load_kit(path: str | os.PathLike) -> PanoManKit:
                       info=str(km.get("info", "{}")))  # fmt: skip
 
 
-_SEXES = {"male": 0, "female": 1}
+_SEX_NAMES = ("male", "female")  # index = the `sex` code of the population and the recipe
+
+
+def _sex_name(sex: int) -> str:
+    """The name of the `sex` code 0 / 1 (`ValueError` otherwise)."""
+    if sex not in (0, 1):
+        raise ValueError(f"`sex` must be 0 (male) or 1 (female), got {sex!r}.")
+    return _SEX_NAMES[int(sex)]
 
 
 def _check_sex(sex: str) -> str:
-    if sex not in _SEXES:
+    if sex not in _SEX_NAMES:
         raise ValueError(f"`sex` must be 'male' or 'female', got {sex!r}.")
     return sex
 
@@ -402,9 +408,7 @@ def build_default_panoman(
     if bad:
         raise ValueError(f"unknown recipe fields {bad}; the recipe has {sorted(RECIPE)}.")
     recipe = dict(RECIPE, **overrides)
-    sex = {0: "male", 1: "female"}.get(recipe["sex"])
-    if sex is None:
-        raise ValueError(f"`sex` must be 0 (male) or 1 (female), got {recipe['sex']!r}.")
+    sex = _sex_name(recipe["sex"])
     root = mocap_dir if mocap_dir is not None else find_mocap_dir()
     if root is None or not os.path.isdir(os.fspath(root)):
         raise ValueError(

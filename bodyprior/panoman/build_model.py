@@ -20,13 +20,13 @@ def main(argv=None) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ._default import build_default_panoman
+    from ._default import _SEX_NAMES, build_default_panoman
 
     build_default_panoman(
         args.out,
         mocap_dir=args.mocap,
         progress=not args.no_progress,
-        sex={"male": 0, "female": 1}[args.sex],
+        sex=_SEX_NAMES.index(args.sex),
     )
 
 
