@@ -15,10 +15,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._kinematics import Similarity, forward_kinematics
-from .._rig import Rig, RigHolder
+from .._rig import Rig, RigHolder, _float_leaf, _int_leaf
 from .._rotations import euler_to_matrix, rotation_to_matrix
 from .._skinning import lbs
-from .._validate import as_device_array, check_array, is_tracer
+from .._validate import check_array, is_tracer
 
 _REP_SHAPES = {
     "axis_angle": (3,),
@@ -26,14 +26,6 @@ _REP_SHAPES = {
     "quaternion": (4,),
     "sixd": (6,),
 }
-
-
-def _float_leaf(x):
-    return as_device_array(x)
-
-
-def _int_leaf(x):
-    return as_device_array(x, dtype=jnp.int32)
 
 
 class SScapeModel(RigHolder):
