@@ -399,7 +399,7 @@ def main(argv=None) -> dict:
     sets = constraint_sets(body, hand_body, vm, np.asarray(test.rest[0]), rng)
     torso = sets["torso"]
     n_handles = max(sets[c].size for c in cfg["csets"])
-    solver = pm.prepare_shell_solver(top)
+    solver = pm.prepare_panoman_solver(model)
     rec: dict = {}
     stages = []
     for i in tb:

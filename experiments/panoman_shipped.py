@@ -98,7 +98,7 @@ def main(argv=None) -> dict:
     sets = exp.constraint_sets(body, split.hand_body, vm, np.asarray(test.rest[0]), rng)
 
     # ------------------------------------------------------------ reconstruction, C1 / C2
-    solver = pm.prepare_shell_solver(kit.model.topology)
+    solver = pm.prepare_panoman_solver(kit.model)
     tb = np.flatnonzero(np.asarray(test.kind) == 0)
     rec: dict = {}
     shown = {}

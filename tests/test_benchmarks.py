@@ -125,6 +125,8 @@ KEYS = {
         "stages_median.init_s",
         "stages_median.body_s",
         "stages_median.err_mm_mean",
+        "whole_blocks.fit_total_s",
+        "whole_blocks.err_mm_mean",
     ],
     "cli_start": [
         "no_cache.time_to_first_fit_s",

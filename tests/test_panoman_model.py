@@ -161,6 +161,51 @@ def test_fit_panoman_lowers_the_error_from_dense_handles(trained):
 
 
 @needs_data
+def test_local_blocks_move_only_their_region(trained):
+    """prepare_panoman_solver: the face and hand blocks move their part's region (the support of
+    its components, grown by `rings`) and nothing else; `local=()` moves every vertex."""
+    data, top, sol = trained
+    m = sol.value
+    local = pm.prepare_panoman_solver(m, rings=1)
+    assert local.region("body") is None
+    region = np.zeros(top.n_vertices, bool)
+    for part in ("face", "hand"):
+        r = local.region(part)
+        assert 0 < r.n_free < r.topology.n_vertices < top.n_vertices
+        region[np.asarray(r.vertices)[np.asarray(r.free)]] = True
+    i = 0
+    gt = np.asarray(data.vertices[i], np.float64)
+    alpha = m.shape_coefficients(np.asarray(data.rest[i], np.float64))
+    rng = np.random.default_rng(5)
+    h = rng.choice(top.n_vertices, 300, replace=False)
+    cons = pm.shell_constraints(handles=(h, gt[h] + 0.004 * rng.standard_normal((300, 3))))
+    kw = dict(init=(alpha, *m.neutral()), init_mesh=gt, blocks=("face", "hand"), max_steps=2)
+    fit = pm.fit_panoman(m, cons, solver=local, **kw)
+    moved = np.abs(np.asarray(fit.value.vertices) - gt).max(1) > 0
+    assert moved[region].mean() > 0.5
+    assert not moved[~region].any()
+    for b in fit.stats["blocks"]:
+        assert b["energy"] < b["energy0"]
+        assert b["free_vertices"] == local.region(b["part"]).n_free
+    whole = pm.fit_panoman(m, cons, solver=pm.prepare_panoman_solver(m, local=()), **kw)
+    assert (np.abs(np.asarray(whole.value.vertices) - gt).max(1) > 0)[~region].mean() > 0.5
+
+
+@needs_data
+@pytest.mark.bad_input
+def test_panoman_solver_bad_input(trained):
+    _, top, sol = trained
+    m = sol.value
+    with pytest.raises(ValueError, match="local"):
+        pm.prepare_panoman_solver(m, local=("body",))
+    with pytest.raises(ValueError, match="rings"):
+        pm.prepare_panoman_solver(m, rings=-1)
+    cons = pm.shell_constraints(handles=(np.array([0]), np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="prepare_panoman_solver"):
+        pm.fit_panoman(m, cons, solver=pm.prepare_shell_solver(top))
+
+
+@needs_data
 def test_motion_coefficients_recover_a_model_mesh(trained):
     data, top, sol = trained
     m = sol.value

@@ -103,8 +103,9 @@ def _handles_and_surface_points(mesh, rng):
 
 def test_gauss_newton_jacobian_and_exact_preconditioner(mesh):
     """The residual the LM linearises (shell rows + constraint rows) has JVPs equal to central
-    differences in float64; without parameters or joints the sparse LDLᵀ preconditioner is the
-    exact Gauss–Newton matrix, so every inner PCG solve ends in one step."""
+    differences in float64; without parameters the sparse LDLᵀ preconditioner (shell, handle,
+    surface and joint rows: the joint regressor's couplings extend its pattern) is the exact
+    Gauss–Newton matrix, so every inner PCG solve ends in one step."""
     v, x, top, solver = mesh
     y = v * 1.1 + 0.05 * np.sin(3 * v)
     basis = jnp.stack([pm.rla_encode(x, v, top).concat(), pm.rla_encode(y, v, top).concat()])
@@ -131,9 +132,52 @@ def test_gauss_newton_jacobian_and_exact_preconditioner(mesh):
         fd = (resid(u + eps * d) - resid(u - eps * d)) / (2 * eps)
         np.testing.assert_allclose(jv, fd, rtol=1e-6, atol=1e-6 * float(jnp.abs(jv).max()))
     rla = pm.rla_encode(x, v, top)
-    vcons = pm.shell_constraints(handles=(h, x[h]), surface=(f, bary, pts, nrm))
+    idx = rng.choice(v.shape[0], (3, 7), replace=False)
+    coef = rng.dirichlet(np.ones(7), 3)
+    coef[0, 2] = 0.0  # a zero entry: not part of the pattern
+    joints = (idx, coef, np.einsum("jm,jmd->jd", coef, x[idx]))
+    vcons = pm.shell_constraints(handles=(h, x[h]), surface=(f, bary, pts, nrm), joints=joints)
     sol = pm.shell_solve(lambda p: rla, v, (), V0, top, vcons, solver=solver, max_steps=4, ftol=0.0)
     assert int(sol.stats["cg_steps"]) <= int(sol.stats["steps"]), sol.stats
+    assert float(jnp.abs(sol.value.vertices - x).max()) < 1e-5  # 4 Gauss-Newton steps
+
+
+def test_free_vertices_and_the_region_sub_mesh_solve_the_same_problem(mesh):
+    """Fixed vertices stay where they start; a solve on a region's sub-mesh (the faces within
+    two rings of its free vertices, `fit_panoman`'s face and hand blocks) gives the vertices of
+    the masked whole-mesh solve: every residual that reads a free vertex is on the sub-mesh."""
+    from bodyprior.panoman._fit import _make_region
+
+    v, x, top, solver = mesh
+    e = np.asarray(top.edges)
+    region = _make_region(top, v[e].mean(1)[:, 0] > 0.6, rings=1)
+    sv, free = np.asarray(region.vertices), np.asarray(region.free)
+    assert free.sum() < sv.size < top.n_vertices
+    full_free = np.zeros(top.n_vertices, bool)
+    full_free[sv[free]] = True
+    rla = pm.rla_encode(x, v, top)
+    h = sv[free][:: max(1, int(free.sum()) // 6)]
+    opts = dict(max_steps=4, ftol=0.0)
+    whole = pm.shell_solve(lambda p: rla, v, (), v, top, pm.shell_constraints(handles=(h, x[h])),
+                           solver=solver, free=full_free, **opts).value.vertices  # fmt: skip
+    np.testing.assert_array_equal(np.asarray(whole)[~full_free], v[~full_free])
+    assert float(jnp.abs(whole[full_free] - v[full_free]).max()) > 1e-2
+    sub_rla = pm.RLA(rla.lengths[region.edges], rla.angles[region.edges])
+    hs = np.asarray(region.vertex_map)[h]
+    sub = pm.shell_solve(lambda p: sub_rla, v[sv], (), v[sv], region.topology,
+                         pm.shell_constraints(handles=(hs, x[h])), solver=region.solver,
+                         free=free, **opts).value.vertices  # fmt: skip
+    np.testing.assert_allclose(sub, np.asarray(whole)[sv], atol=1e-9)
+
+
+@pytest.mark.bad_input
+def test_free_bad_input(mesh):
+    v, x, top, solver = mesh
+    rla = pm.rla_encode(x, v, top)
+    with pytest.raises(ValueError, match="free"):
+        pm.shell_solve(lambda p: rla, v, (), v, top, solver=solver, free=np.ones(5, bool))
+    with pytest.raises(ValueError, match="free"):
+        pm.shell_solve(lambda p: rla, v, (), v, top, solver=solver, free=np.ones(v.shape[0]))
 
 
 class _RestScaled(eqx.Module):

@@ -64,10 +64,12 @@ from ._default import train_split as train_split
 from ._fit import JointRegressor as JointRegressor
 from ._fit import LbsModel as LbsModel
 from ._fit import PanoManFit as PanoManFit
+from ._fit import PanoManSolver as PanoManSolver
 from ._fit import fit_joint_regressor as fit_joint_regressor
 from ._fit import fit_lbs as fit_lbs
 from ._fit import fit_panoman as fit_panoman
 from ._fit import make_lbs_model as make_lbs_model
+from ._fit import prepare_panoman_solver as prepare_panoman_solver
 from ._model import MLP as MLP
 from ._model import PARTS as PARTS
 from ._model import PanoManModel as PanoManModel
@@ -132,10 +134,12 @@ __all__ = [
     "JointRegressor",
     "LbsModel",
     "PanoManFit",
+    "PanoManSolver",
     "fit_joint_regressor",
     "fit_lbs",
     "fit_panoman",
     "make_lbs_model",
+    "prepare_panoman_solver",
     "KINDS",
     "MLP",
     "PARTS",

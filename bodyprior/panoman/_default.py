@@ -51,13 +51,14 @@ from ._data import PanomanData, make_panoman_data
 from ._fit import (
     JointRegressor,
     LbsModel,
+    PanoManSolver,
     fit_joint_regressor,
     fit_lbs,
     fit_panoman,
     make_lbs_model,
 )
 from ._model import PanoManModel, _model_arrays, _model_from, _read_npz, _write_npz, train_panoman
-from ._solve import ShellSolver, shell_constraints
+from ._solve import shell_constraints
 
 __all__ = [
     "RECIPE",
@@ -474,7 +475,7 @@ def reconstruct(
     max_steps: int = 5,
     correct: bool = True,
     blocks: tuple[str, ...] = ("face", "body", "hand"),
-    solver: ShellSolver | None = None,
+    solver: PanoManSolver | None = None,
 ) -> Solution:
     """A full body from sparse 3-D constraints (paper §5), as docs/results_panoman.md measures it.
 

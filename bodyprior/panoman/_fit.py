@@ -14,12 +14,13 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._kinematics import forward_kinematics
 from .._rotations import axis_angle_to_matrix
 from .._skinning import dqs, lbs
 from .._solution import RESULTS, Solution
+from .._topology import Topology
 from .._validate import check_array
 from ._data import PanomanData
 from ._model import PARTS, PanoManModel, _evaluate_jit, model_targets, pose_features
@@ -35,10 +36,12 @@ __all__ = [
     "JointRegressor",
     "LbsModel",
     "PanoManFit",
+    "PanoManSolver",
     "fit_joint_regressor",
     "fit_lbs",
     "fit_panoman",
     "make_lbs_model",
+    "prepare_panoman_solver",
 ]
 
 
@@ -233,6 +236,153 @@ class PanoManFit(eqx.Module):
     init_vertices: Float[Array, "V 3"]
 
 
+class _Region(eqx.Module):
+    """One part's region for a local block solve: the sub-mesh of the faces within two rings of
+    the free vertices, with the vertices outside the free set fixed (module of `fit_panoman`)."""
+
+    vertices: Int[Array, " n"]  # full-mesh index of each sub-mesh vertex (ascending)
+    edges: Int[Array, " e"]  # full-mesh edge of each sub-mesh edge
+    vertex_map: Int[Array, " V"]  # sub-mesh index of each full-mesh vertex, -1 outside
+    face_map: Int[Array, " F"]  # sub-mesh index of each full-mesh face, -1 outside
+    free: Bool[Array, " n"]
+    topology: Topology
+    solver: ShellSolver
+    n_free: int = eqx.field(static=True)
+
+
+class PanoManSolver(eqx.Module):
+    """What [`bodyprior.panoman.fit_panoman`][] precomputes once per model (host side): the
+    whole mesh's [`bodyprior.panoman.ShellSolver`][] and, for the parts solved locally, the
+    part's region (sub-mesh, fixed rings, edge and vertex maps) with its own solver. Build with
+    [`bodyprior.panoman.prepare_panoman_solver`][]."""
+
+    whole: ShellSolver
+    regions: tuple  # per part of PARTS: a _Region or None (that part's block moves all vertices)
+    rings: int = eqx.field(static=True)
+
+    def region(self, part: str):
+        return self.regions[PARTS.index(part)]
+
+
+def _part_support(model: PanoManModel, part: str) -> np.ndarray:
+    """`(E,)` bool: edges on which a component of `part` (lengths or angles) is non-zero."""
+    s = model.part_slice(part)
+    cl = np.asarray(model.components_lengths)[s]
+    ca = np.asarray(model.components_angles)[s]
+    return (cl != 0).any(0) | (ca != 0).any(0)
+
+
+def _make_region(top: Topology, support: np.ndarray, rings: int) -> _Region:
+    V, F = top.n_vertices, top.n_faces
+    faces = np.asarray(top.faces)
+    e, opp = np.asarray(top.edges), np.asarray(top.edge_opposite)
+    free = np.zeros(V, bool)
+    free[e[support].ravel()] = True
+    o = opp[support].ravel()
+    free[o[o >= 0]] = True  # the hinge stencils of the support edges
+    for _ in range(rings):
+        free = _grow(free, faces)
+    # Every residual that reads a free vertex lives on the faces within two rings of it.
+    v1 = _grow(free, faces)
+    keep = v1[faces].any(1)
+    sub_vertices = np.flatnonzero(np.bincount(faces[keep].ravel(), minlength=V) > 0)
+    vmap = np.full(V, -1, np.int64)
+    vmap[sub_vertices] = np.arange(sub_vertices.size)
+    fmap = np.full(F, -1, np.int64)
+    fmap[keep] = np.arange(int(keep.sum()))
+    sub = Topology.from_faces(vmap[faces[keep]], int(sub_vertices.size))
+    se = np.asarray(sub.edges)
+    key_full = e[:, 0].astype(np.int64) * V + e[:, 1]
+    key_sub = sub_vertices[se[:, 0]].astype(np.int64) * V + sub_vertices[se[:, 1]]
+    emap = np.searchsorted(key_full, key_sub)  # full edges are sorted lexicographically
+    if not np.array_equal(key_full[emap], key_sub):
+        raise AssertionError("region edges not found in the full mesh")
+    i32 = lambda a: jnp.asarray(a, jnp.int32)  # noqa: E731
+    return _Region(
+        i32(sub_vertices), i32(emap), i32(vmap), i32(fmap), jnp.asarray(free[sub_vertices]),
+        sub, prepare_shell_solver(sub), int(free.sum()),
+    )  # fmt: skip
+
+
+def _grow(mask: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """`mask` grown by one ring: every vertex of a face that touches it."""
+    out = mask.copy()
+    out[faces[mask[faces].any(1)].ravel()] = True
+    return out
+
+
+def prepare_panoman_solver(
+    model: PanoManModel, *, local: tuple[str, ...] = ("face", "hand"), rings: int = 2
+) -> PanoManSolver:
+    """Precomputes the [`bodyprior.panoman.PanoManSolver`][] of `model` for
+    [`bodyprior.panoman.fit_panoman`][] (host side; reuse it across frames).
+
+    - `local`: the parts whose block moves only its region: the vertices of the hinges on which a
+      component of the part is non-zero (its SPLOCS support), grown by `rings` rings; the rest of
+      the mesh stays where the previous block left it. The face and hand blocks change only
+      their part's targets (the correction MLP reads body coefficients alone), so the rest of
+      the mesh has nothing to gain from them beyond what the body block does; their solves then
+      run on a sub-mesh (~15 % of the body's vertices each), which the paper's per-iteration
+      costs suggest it does too (face 2.5 s, body 11.9 s, hand 1.1 s; Table 1). `()` moves all
+      vertices in every block.
+    """
+    if not isinstance(model, PanoManModel):
+        raise ValueError(f"`model` must be a PanoManModel, got {type(model).__name__}.")
+    for part in local:
+        if part not in PARTS or part == "body":
+            raise ValueError(f"`local` entries must be 'face' or 'hand', got {part!r}.")
+    if isinstance(rings, bool) or not isinstance(rings, (int, np.integer)) or rings < 0:
+        raise ValueError(f"`rings` must be an int >= 0, got {rings!r}.")
+    top = model.topology
+    regions = tuple(
+        _make_region(top, _part_support(model, part), int(rings)) if part in local else None
+        for part in PARTS
+    )
+    return PanoManSolver(prepare_shell_solver(top), regions, int(rings))
+
+
+class _LocalTargets(eqx.Module):
+    """The targets of a face or hand block on its region's edges: `X(β) = X(β⁰) + (β − β⁰) M`
+    with `M` the part's component rows on those edges. Exact: eq. 5 is linear in a part's
+    coefficients, and the correction MLP reads only the body's."""
+
+    base_lengths: Array
+    base_angles: Array
+    comp_lengths: Array
+    comp_angles: Array
+    bl0: Array
+    ba0: Array
+
+    def __call__(self, params) -> RLA:
+        dt = self.comp_lengths.dtype
+        L = self.base_lengths + (params["bl"] - self.bl0).astype(dt) @ self.comp_lengths
+        A = self.base_angles + (params["ba"] - self.ba0).astype(dt) @ self.comp_angles
+        return RLA(L, A)
+
+
+def _local_constraints(cons: ShellConstraints, region: _Region, V: Array) -> ShellConstraints:
+    """`cons` on the region's sub-mesh, same shapes: handles and surface points outside it get
+    weight 0; regressor entries outside it move into the joint target (those vertices are
+    fixed)."""
+    vm, fm = region.vertex_map, region.face_map
+    hi = vm[cons.handle_index]
+    ji = vm[cons.joint_indices]
+    inside = ji >= 0
+    outside_sum = jnp.einsum(
+        "jm,jmd->jd", jnp.where(inside, 0.0, cons.joint_coeffs), V[cons.joint_indices]
+    )
+    sf = fm[cons.surface_face]
+    return eqx.tree_at(
+        lambda c: (c.handle_index, c.handle_weight, c.joint_indices, c.joint_coeffs,
+                   c.joint_position, c.surface_face, c.surface_weight),
+        cons,
+        (jnp.maximum(hi, 0), jnp.where(hi >= 0, cons.handle_weight, 0.0),
+         jnp.maximum(ji, 0), jnp.where(inside, cons.joint_coeffs, 0.0),
+         cons.joint_position - outside_sum,
+         jnp.maximum(sf, 0), jnp.where(sf >= 0, cons.surface_weight, 0.0)),
+    )  # fmt: skip
+
+
 class _BlockTargets(eqx.Module):
     """`targets(params)` for one block: the block's β (and α for the body block) move."""
 
@@ -282,7 +432,7 @@ def fit_panoman(
     weight: float = 1e6,
     max_steps: int = 8,
     param_weight: float = 1e-4,
-    solver: ShellSolver | None = None,
+    solver: PanoManSolver | None = None,
     align_to: Float[ArrayLike, "V 3"] | None = None,
     cg_rtol: float = 1e-3,
     cg_max_steps: int = 300,
@@ -304,11 +454,15 @@ def fit_panoman(
       35–60 mm; docs/panoman.md).
     - `theta`: a `cmu_mb` axis-angle pose `(J, 3)` (e.g. from IK, [`bodyprior.panoman.fit_lbs`][],
       or motion data) giving the body β by the β MLP (§5.3); `joint_names` the rig's names.
-    - `blocks`: the block order (paper: face, body, hand); each block moves all vertices and its
-      part's β (the body block also α); `max_steps` LM iterations per block.
+    - `blocks`: the block order (paper: face, body, hand); each block moves its part's β (the
+      body block also α) and the vertices: all of them in the body block, the part's region in
+      the face and hand blocks (the sub-meshes of `solver`,
+      [`bodyprior.panoman.prepare_panoman_solver`][]); `max_steps` LM iterations per block.
     - `correct`: use the correction MLP (eq. 5); `False` is the eq. 4 baseline.
     - `weight`: λ (eq. 6); `param_weight`: a weak editing prior keeping β near its start.
-    - `solver`: a prepared [`bodyprior.panoman.ShellSolver`][] (prepared here if omitted).
+    - `solver`: [`bodyprior.panoman.prepare_panoman_solver`][]`(model)`, prepared once and reused
+      across frames (prepared here if omitted); `prepare_panoman_solver(model, local=())` moves
+      all vertices in every block.
     - `align_to`: `(V, 3)` mesh the decoded initialisation is placed on rigidly (e.g. the IK
       mesh); default the decoder's anchor frame.
     - `cg_rtol`, `cg_max_steps`: the inner PCG of each LM iteration
@@ -328,7 +482,8 @@ def fit_panoman(
 
     **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.PanoManFit`][] and `stats`:
     per block `steps` (LM iterations), `cg_steps` (inner PCG iterations, all LM iterations),
-    `energy0`, `energy`, `seconds`; `init_s` (β MLP or projection, and g).
+    `energy0`, `energy` (a local block's: on its sub-mesh), `seconds`, `free_vertices`;
+    `init_s` (β MLP or projection, and g).
     """
     top = model.topology
     K = model.n_components
@@ -336,6 +491,13 @@ def fit_panoman(
     for b in blocks:
         if b not in PARTS:
             raise ValueError(f"`blocks` entries must be in {PARTS}, got {b!r}.")
+    if solver is not None and not (
+        isinstance(solver, PanoManSolver) and solver.whole.n_vertices == top.n_vertices
+    ):
+        raise ValueError(
+            "`solver` must be prepare_panoman_solver(model) for this model, got "
+            f"{type(solver).__name__}."
+        )
     if start is None:
         start = "decoded" if init_mesh is None else "mesh"
     if start not in ("decoded", "mesh"):
@@ -373,11 +535,11 @@ def fit_panoman(
     V_init = V
     stats = {"init_s": time.perf_counter() - t0, "blocks": []}
     if solver is None:
-        solver = prepare_shell_solver(top)
+        solver = prepare_panoman_solver(model)
     for part in blocks:
         s = model.part_slice(part)
         flag = jnp.asarray(1.0 if correct else 0.0)
-        tg = _BlockTargets(model, alpha, bl, ba, flag, s.start, s.stop, part == "body")
+        region = solver.region(part)
         params0 = {"bl": bl[s], "ba": ba[s]}
         if part == "body":
             params0["alpha"] = alpha
@@ -390,21 +552,34 @@ def fit_panoman(
             (jnp.arange(n), flat0, jnp.full(n, param_weight)),
         ) if constraints.param_index.shape[0] == 0 else constraints  # fmt: skip
         tb = time.perf_counter()
-        sol = shell_solve(tg, _Rest(tg), params0, V, top, cons, solver=solver, weight=weight,
-                          max_steps=max_steps, cg_rtol=cg_rtol, cg_max_steps=cg_max_steps,
-                          throw=False)  # fmt: skip
-        fit = sol.value
-        p = fit.params
+        opts = dict(weight=weight, max_steps=max_steps, cg_rtol=cg_rtol,
+                    cg_max_steps=cg_max_steps, throw=False)  # fmt: skip
+        if region is None:
+            tg = _BlockTargets(model, alpha, bl, ba, flag, s.start, s.stop, part == "body")
+            sol = shell_solve(tg, _Rest(tg), params0, V, top, cons, solver=solver.whole, **opts)
+            V = sol.value.vertices
+        else:  # the part's region alone (prepare_panoman_solver)
+            e = region.edges
+            x0 = model_targets(model, bl, ba, correct=flag)
+            lt = _LocalTargets(x0.lengths[e], x0.angles[e], model.components_lengths[s][:, e],
+                               model.components_angles[s][:, e], bl[s], ba[s])  # fmt: skip
+            rest = jnp.asarray(model.shape(alpha), jnp.float64)[region.vertices]
+            sol = shell_solve(lt, rest, params0, V[region.vertices], region.topology,
+                              _local_constraints(cons, region, V), solver=region.solver,
+                              free=np.asarray(region.free), **opts)  # fmt: skip
+            V = V.at[region.vertices].set(sol.value.vertices)
+        p = sol.value.params
         bl = bl.at[s].set(p["bl"])
         ba = ba.at[s].set(p["ba"])
         if part == "body":
             alpha = p["alpha"]
-        V = fit.vertices
         stats["blocks"].append(dict(part=part, steps=int(sol.stats["steps"]),
                                     cg_steps=int(sol.stats["cg_steps"]),
                                     energy0=float(sol.stats["energy0"]),
                                     energy=float(sol.stats["energy"]),
-                                    seconds=time.perf_counter() - tb))  # fmt: skip
+                                    seconds=time.perf_counter() - tb,
+                                    free_vertices=top.n_vertices if region is None
+                                    else region.n_free))  # fmt: skip
     ok = bool(jnp.all(jnp.isfinite(V)))
     return Solution(
         PanoManFit(V, alpha, bl, ba, V_init),

@@ -20,12 +20,15 @@ energy plus constraint energies, with the vertices and the model parameters unkn
 + μ D) δ = −Jᵀr` by PCG on the whole system (vertices and parameters; matrix-free products: the
 shell rows' vertex block from their explicit Jacobian rows, the rest from `jax.linearize` of the
 parameter and constraint parts) preconditioned by an exact sparse LDLᵀ factorisation of the shell +
-handle + surface block (qdldl, AMD ordering, symbolic analysis once per topology; on the host) and a
-dense Cholesky of the parameter block's Gram matrix (computed once per solve at the start, exact for
-targets linear in `p`; parameters the rest mesh does not read go through the targets alone,
-`_param_gram`). The joint-regressor rows and the vertex–parameter coupling are the low-rank part the
-PCG resolves. Plain block-Jacobi PCG needs ~6,800 steps for a 1e-2 residual reduction on the
-decimated body, the factorisation 0.19 s (0.46 s full body): the factorisation won.
+handle + surface + joint block (qdldl, AMD ordering, symbolic analysis once per topology and set of
+joint-regressor vertices; on the host) and a dense Cholesky of the parameter block's Gram matrix
+(computed once per solve at the start, exact for targets linear in `p`; parameters the rest mesh
+does not read go through the targets alone, `_param_gram`). The vertex–parameter coupling is the
+low-rank part the PCG resolves. (Until 2026-12-07 the joint rows entered the factorisation by
+their diagonal alone and the PCG resolved their couplings too: 248 PCG steps in the body block
+of a C2 frame where the exact joint rows need ~60.) Plain block-Jacobi PCG needs ~6,800 steps
+for a 1e-2 residual reduction on the decimated body, the factorisation 0.19 s (0.46 s full body):
+the factorisation won.
 
 `D` is the diagonal of the preconditioned blocks (Marquardt scaling); `μ` follows Nielsen's rule.
 An iteration budget ending is not a failure (`stats["converged"]` says whether the stopping test
@@ -45,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._solution import RESULTS, Solution, _check
 from .._topology import Topology
@@ -213,12 +216,30 @@ def _check_constraints(c: ShellConstraints, n_vertices: int, n_faces: int, n_par
 _POOL = 4  # numeric factors kept alive at once (one per vmapped item of an iteration)
 
 
+class _Pattern:
+    """One sparsity pattern of `A_s` (upper CSC) and where each product lands in its data."""
+
+    def __init__(self, indptr, indices, keys, bend_pos, stretch_pos, face_pos, diag_pos,
+                 joint=None):  # fmt: skip
+        self.indptr, self.indices, self.keys = indptr, indices, keys
+        self.nnz = keys.size
+        self.bend_pos, self.stretch_pos, self.face_pos = bend_pos, stretch_pos, face_pos
+        self.diag_pos = diag_pos
+        # joint rows: data[pos] += c[j, a] c[j, b] (3 coordinates each), or None
+        self.joint = joint
+
+
 class _HostFactor:
-    """Host side of the preconditioner: the fixed upper-triangular CSC pattern of the shell +
-    handle + surface block `A_s` (3V × 3V), the maps that scatter per-row Jacobian products into
+    """Host side of the preconditioner: the upper-triangular CSC pattern of the shell + handle +
+    surface + joint block `A_s` (3V × 3V), the maps that scatter per-row Jacobian products into
     it, and a pool of qdldl factorisations (AMD ordering and symbolic analysis reused by
-    `update`). A factor is found by the id its factor call returned, so the solves of one
-    iteration use theirs, also under `vmap` (up to `_POOL` items)."""
+    `update` while the pattern stays). The joint rows couple the vertices of each joint's
+    regressor, so their pattern depends on the constraints: one extended pattern per set of
+    regressor vertices, built on first use and kept (`_MAX_PATTERNS`). A factor is found by the
+    id its factor call returned, so the solves of one iteration use theirs, also under `vmap`
+    (up to `_POOL` items)."""
+
+    _MAX_PATTERNS = 8
 
     def __init__(self, stencils: np.ndarray, faces: np.ndarray, n_vertices: int, key: tuple):
         import scipy.sparse as sps
@@ -237,22 +258,21 @@ class _HostFactor:
         pat = sps.csc_matrix((np.ones(int(up.sum())), (rows[up], cols[up])), shape=(n, n))
         pat.sum_duplicates()
         pat.sort_indices()
-        self.indptr, self.indices = pat.indptr, pat.indices
         # Column-major sort keys of the stored entries: data position by binary search.
-        keys = self.indices.astype(np.int64) + n * np.repeat(
-            np.arange(n, dtype=np.int64), np.diff(self.indptr)
+        keys = pat.indices.astype(np.int64) + n * np.repeat(
+            np.arange(n, dtype=np.int64), np.diff(pat.indptr)
         )
-        self.nnz = keys.size
 
         def position(ii, jj):  # upper entry (ii <= jj) of each product, else -1
             return np.where(ii <= jj, np.searchsorted(keys, ii.astype(np.int64) + n * jj), -1)
 
         # JᵀJ's upper entry (i, j) is Σ_r J_ri J_rj: each product with i <= j is added once.
-        self.bend_pos, self.stretch_pos, self.face_pos = (position(*p) for p in pairs)
-        self.diag_pos = position(diag, diag)
+        self.base = _Pattern(pat.indptr, pat.indices, keys, *(position(*p) for p in pairs),
+                             position(diag, diag))  # fmt: skip
+        self._patterns: dict = {}
         self._lock = threading.Lock()
         self._ids = itertools.count(0)
-        self._slots: list[Any] = [None] * _POOL
+        self._slots: list[Any] = [None] * _POOL  # (pattern, qdldl.Solver)
         self._slot_id = [-1] * _POOL
 
     def __hash__(self):
@@ -261,48 +281,99 @@ class _HostFactor:
     def __eq__(self, other):
         return isinstance(other, _HostFactor) and self.key == other.key
 
-    def assemble(self, jb, js, surf_face, surf_coef, diag_add):
-        """`A_s` data (upper CSC) from bend / stretch row Jacobians `(E, 12)` / `(E, 6)`,
-        surface rows `(S, 9)` on faces `surf_face` and a diagonal addition `(3V,)`."""
+    def pattern(self, joint_index, joint_coef) -> _Pattern:
+        """The pattern with the joint rows' couplings (the regressor entries with a non-zero
+        coefficient) added to the base one."""
+        ji = np.asarray(joint_index, np.int64).reshape(-1, np.shape(joint_index)[-1])
+        live = np.asarray(joint_coef).reshape(ji.shape) != 0
+        if not live.any():
+            return self.base
+        key = (np.where(live, ji, -1).tobytes(), ji.shape)
+        pat = self._patterns.get(key)
+        if pat is not None:
+            return pat
+        n, base = self.n, self.base
+        j, a, b, i_a, i_b = [], [], [], [], []
+        for jj in range(ji.shape[0]):
+            m = np.flatnonzero(live[jj])
+            aa, bb = np.meshgrid(m, m, indexing="ij")
+            aa, bb = aa.ravel(), bb.ravel()
+            va, vb = ji[jj, aa], ji[jj, bb]
+            keep = va <= vb  # upper triangle by vertex (each coordinate the same)
+            j.append(np.full(int(keep.sum()), jj))
+            a.append(aa[keep])
+            b.append(bb[keep])
+            i_a.append(va[keep])
+            i_b.append(vb[keep])
+        j, a, b, i_a, i_b = (np.concatenate(x) for x in (j, a, b, i_a, i_b))
+        # coordinate d of vertex pair (i_a, i_b): dofs 3 i_a + d, 3 i_b + d
+        d = np.arange(3)
+        ra = (3 * i_a[:, None] + d).ravel()
+        cb = (3 * i_b[:, None] + d).ravel()
+        new = np.union1d(base.keys, ra + n * cb)
+        remap = np.searchsorted(new, base.keys)
+        rows = (new % n).astype(np.int32)
+        counts = np.bincount(new // n, minlength=n)
+        indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+        moved = lambda pos: np.where(pos >= 0, remap[np.maximum(pos, 0)], -1)  # noqa: E731
+        jpos = np.searchsorted(new, ra + n * cb)
+        pat = _Pattern(indptr, rows, new, moved(base.bend_pos), moved(base.stretch_pos),
+                       moved(base.face_pos), moved(base.diag_pos),
+                       (jpos, np.repeat(j, 3), np.repeat(a, 3), np.repeat(b, 3)))  # fmt: skip
+        if len(self._patterns) >= self._MAX_PATTERNS:
+            self._patterns.pop(next(iter(self._patterns)))
+        self._patterns[key] = pat
+        return pat
+
+    def assemble(self, jb, js, surf_face, surf_coef, diag_add, joint_index=None, joint_coef=None):
+        """`(pattern, data)` of `A_s` (upper CSC) from bend / stretch row Jacobians `(E, 12)` /
+        `(E, 6)`, surface rows `(S, 9)` on faces `surf_face`, a diagonal addition `(3V,)` and
+        joint rows (regressor vertices `(J, M)`, coefficients `√(λ w_j) c_jm` `(J, M)`)."""
+        pat = self.base if joint_index is None else self.pattern(joint_index, joint_coef)
         jb, js = np.asarray(jb).reshape(-1, 12), np.asarray(js).reshape(-1, 6)
-        data = np.zeros(self.nnz)
-        for j, pos in ((jb, self.bend_pos), (js, self.stretch_pos)):
+        data = np.zeros(pat.nnz)
+        for j, pos in ((jb, pat.bend_pos), (js, pat.stretch_pos)):
             m = pos >= 0
             data += np.bincount(
-                pos[m], weights=(j[:, :, None] * j[:, None, :])[m], minlength=self.nnz
+                pos[m], weights=(j[:, :, None] * j[:, None, :])[m], minlength=pat.nnz
             )
         sf = np.asarray(surf_face)
         if sf.size:
             c = np.asarray(surf_coef).reshape(-1, 9)
-            pos = self.face_pos[sf]
+            pos = pat.face_pos[sf]
             m = pos >= 0
             data += np.bincount(
-                pos[m], weights=(c[:, :, None] * c[:, None, :])[m], minlength=self.nnz
+                pos[m], weights=(c[:, :, None] * c[:, None, :])[m], minlength=pat.nnz
             )
-        data[self.diag_pos] += np.asarray(diag_add)
-        return data
+        if pat.joint is not None:
+            pos, jj, a, b = pat.joint
+            c = np.asarray(joint_coef).reshape(np.shape(joint_index)[-2:])
+            data += np.bincount(pos, weights=c[jj, a] * c[jj, b], minlength=pat.nnz)
+        data[pat.diag_pos] += np.asarray(diag_add)
+        return pat, data
 
-    def matrix(self, data):
+    def matrix(self, pat: _Pattern, data):
         import scipy.sparse as sps
 
-        return sps.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        return sps.csc_matrix((data, pat.indices, pat.indptr), shape=(self.n, self.n))
 
-    def factor(self, jb, js, surf_face, surf_coef, diag_add, damping):
+    def factor(self, jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef, damping):
         """Factors `A_s + damping · diag(A_s)` (plus a 1e-12 relative ridge); returns
         `(id, diag(A_s))`."""
         import qdldl
 
-        data = self.assemble(jb, js, surf_face, surf_coef, diag_add)
-        d = data[self.diag_pos].copy()
-        data[self.diag_pos] += float(damping) * d + 1e-12 * max(float(d.mean()), 1e-300)
-        A = self.matrix(data)
+        pat, data = self.assemble(jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef)
+        d = data[pat.diag_pos].copy()
+        data[pat.diag_pos] += float(damping) * d + 1e-12 * max(float(d.mean()), 1e-300)
+        A = self.matrix(pat, data)
         with self._lock:
             fid = next(self._ids)
             k = fid % _POOL
-            if self._slots[k] is None:
-                self._slots[k] = qdldl.Solver(A, upper=True)
+            slot = self._slots[k]
+            if slot is None or slot[0] is not pat:
+                self._slots[k] = (pat, qdldl.Solver(A, upper=True))
             else:
-                self._slots[k].update(A, upper=True)
+                slot[1].update(A, upper=True)
             self._slot_id[k] = fid
         return np.int64(fid), d
 
@@ -314,7 +385,7 @@ class _HostFactor:
                     f"shell_solve: more than {_POOL} factorisations alive at once (a vmap over "
                     f"more than {_POOL} bodies); solve in chunks of at most {_POOL}."
                 )
-            return self._slots[k].solve(np.asarray(r, np.float64))
+            return self._slots[k][1].solve(np.asarray(r, np.float64))
 
 
 def _colouring(stencils: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -539,7 +610,9 @@ def _gauss_newton_product(parts, u, nV, stencils, jb, js):
     return product
 
 
-def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolver, cfg: _Config):
+def _solve(
+    targets, rest, params0, vertices0, cons, topology, solver: ShellSolver, cfg: _Config, free
+):
     p0, unravel = ravel_pytree(params0)
     p0 = jnp.asarray(p0, jnp.float64)
     V0 = jnp.asarray(vertices0, jnp.float64)
@@ -549,9 +622,15 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
     def split(u):
         return u[: 3 * nV].reshape(nV, 3), u[3 * nV :]
 
+    def parts(V, p):
+        # Fixed vertices (`free` False) read their start position: their Jacobian columns are
+        # zero, so the step never moves them.
+        if free is not None:
+            V = jnp.where(free[:, None], V, V0)
+        return _parts(V, p, targets, rest, cons, topology, cfg, unravel)
+
     def resid(u):
-        V, p = split(u)
-        s, b, c = _parts(V, p, targets, rest, cons, topology, cfg, unravel)
+        s, b, c = parts(*split(u))
         return jnp.concatenate([s, b, c])
 
     u0 = jnp.concatenate([V0.ravel(), p0])
@@ -567,8 +646,11 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
     # Constant (linear) constraint parts of the sparse block.
     lam = cfg.weight
     diag_add = jnp.zeros((nV, 3)).at[cons.handle_index].add(lam * cons.handle_weight[:, None])
-    jc2 = lam * cons.joint_weight[:, None] * cons.joint_coeffs**2
-    diag_add = diag_add.at[cons.joint_indices].add(jc2[:, :, None]).ravel()
+    # joint rows, exact in the factorisation (their couplings extend its pattern)
+    joint_coef = jnp.sqrt(lam * cons.joint_weight)[:, None] * cons.joint_coeffs
+    if free is not None:  # fixed vertices: a unit diagonal keeps the factor regular
+        diag_add = diag_add + jnp.where(free[:, None], 0.0, 1.0)
+    diag_add = diag_add.ravel()
     surf_coef = (
         jnp.sqrt(lam * cons.surface_weight)[:, None, None]
         * cons.surface_bary[:, :, None]
@@ -599,6 +681,8 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
             cons.surface_face,
             surf_coef,
             diag_add,
+            cons.joint_indices,
+            joint_coef,
             mu,
             vmap_method="sequential",
         )
@@ -630,10 +714,7 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
             Gd = Gp + jnp.diag(mu * dGp + 1e-12 * (jnp.mean(dGp) + 1e-300))
             cho = jax.scipy.linalg.cho_factor(Gd)
 
-        gn = _gauss_newton_product(
-            lambda V, p: _parts(V, p, targets, rest, cons, topology, cfg, unravel),
-            u, nV, st, jb, js,
-        )  # fmt: skip
+        gn = _gauss_newton_product(parts, u, nV, st, jb, js)
 
         def matvec(z):
             z = z[:, 0]
@@ -687,6 +768,8 @@ def _solve(targets, rest, params0, vertices0, cons, topology, solver: ShellSolve
     )
     k, u, f, mu, _, n_cg, n_acc, conv, _ = jax.lax.while_loop(cond, step, init)
     V, p = split(u)
+    if free is not None:
+        V = jnp.where(free[:, None], V, V0)
     s, b, c = _parts(V, p, targets, rest, cons, topology, cfg, unravel)
     es = jnp.sum(s * s) + jnp.sum(b * b)
     fit = ShellFit(V, unravel(p), es + jnp.sum(c * c), es, jnp.sum(c * c), s, b)
@@ -733,6 +816,7 @@ def shell_solve(
     cg_rtol: float = 1e-8,
     cg_max_steps: int = 300,
     damping: float = 1e-4,
+    free: Bool[ArrayLike, " V"] | None = None,
     throw: bool = True,
 ) -> Solution:
     """Minimises `E(V, p)` (module docstring) over the vertices and the parameters jointly by
@@ -761,6 +845,10 @@ def shell_solve(
     - `max_steps`: iteration budget (not a failure when it ends); `ftol`: stop when an accepted
       step lowers `E` by at most `ftol · E`; `cg_rtol`, `cg_max_steps`: the inner PCG;
       `damping`: the initial `μ`.
+    - `free`: `(V,)` bool, the vertices that move (default all); the others stay at
+      `vertices0` (their rows and columns of the system are decoupled). A solve on a region of a
+      larger mesh passes the region's sub-mesh with its outer rings fixed
+      ([`bodyprior.panoman.fit_panoman`][]'s face and hand blocks).
     - `throw`: raise on a failed solve (non-finite values).
 
     **Returns:** a [`bodyprior.Solution`][] with a [`bodyprior.panoman.ShellFit`][] and `stats`
@@ -804,6 +892,16 @@ def shell_solve(
         solver = prepare_shell_solver(topology)
     elif not isinstance(solver, ShellSolver) or solver.n_vertices != topology.n_vertices:
         raise ValueError("`solver` must be prepare_shell_solver(topology) for this topology.")
+    if free is not None:
+        if is_tracer(free):
+            raise ValueError("`free` must be a concrete (V,) bool array, got a tracer.")
+        free = np.asarray(free)
+        if free.shape != (topology.n_vertices,) or free.dtype != np.bool_:
+            raise ValueError(
+                f"`free` must be a ({topology.n_vertices},) bool array, got {free.dtype} "
+                f"{free.shape}."
+            )
+        free = None if free.all() else jnp.asarray(free)
     f64 = lambda v: jnp.asarray(float(v), jnp.float64)  # noqa: E731
     cfg = _Config(
         bending,
@@ -816,5 +914,5 @@ def shell_solve(
         f64(damping),
         int(cg_max_steps),
     )
-    sol = _solve_jit(targets, rest, params0, vertices0, constraints, topology, solver, cfg)
+    sol = _solve_jit(targets, rest, params0, vertices0, constraints, topology, solver, cfg, free)
     return _check(sol, throw, "shell_solve")
