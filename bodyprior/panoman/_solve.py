@@ -661,7 +661,7 @@ def _solve(
     tangents = (
         jnp.zeros((nc, 3, nV, 3)).at[solver.colour, :, jnp.arange(nV), :].set(jnp.eye(3))
     )  # tangent (c, d): ones at colour-c vertices, coordinate d
-    tangents = jnp.concatenate([tangents.reshape(3 * nc, 3 * nV), jnp.zeros((3 * nc, P))], 1)
+    tangents = tangents.reshape(3 * nc, nV, 3)
     st = solver.stencils
     slot_idx = 3 * solver.colour[st][:, :, None] + jnp.arange(3)  # (E, 4, 3)
     rows = jnp.arange(E)[:, None, None]
@@ -704,7 +704,12 @@ def _solve(
         k, u, f, mu, nu, n_cg, n_acc, _, _ = state
         r, jvp = jax.linearize(resid, u)
         (g,) = jax.linear_transpose(jvp, u)(r)
-        cols = jax.vmap(jvp)(tangents)  # (3 nc, R): coloured Jacobian columns
+        # Coloured Jacobian columns (3 nc, 2E) of the shell rows, by JVPs in the vertices alone
+        # (through `resid`'s linearisation, every tangent would also carry its zero parameter
+        # part through the targets' component matrices).
+        Vu, pu = split(u)
+        _, jvp_v = jax.linearize(lambda V: jnp.concatenate(parts(V, pu)[:2]), Vu)
+        cols = jax.vmap(jvp_v)(tangents)
         jb = jnp.where(interior, cols[slot_idx, E + rows], 0.0).reshape(E, 12)
         js = cols[slot_idx[:, :2], rows].reshape(E, 6)
         fid, dA = factor(jb, js, mu)
