@@ -285,7 +285,7 @@ def _make_region(top: Topology, support: np.ndarray, rings: int) -> _Region:
     # Every residual that reads a free vertex lives on the faces within two rings of it.
     v1 = _grow(free, faces)
     keep = v1[faces].any(1)
-    sub_vertices = np.flatnonzero(np.bincount(faces[keep].ravel(), minlength=V) > 0)
+    sub_vertices = np.unique(faces[keep])
     vmap = np.full(V, -1, np.int64)
     vmap[sub_vertices] = np.arange(sub_vertices.size)
     fmap = np.full(F, -1, np.int64)

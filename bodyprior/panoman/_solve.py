@@ -325,11 +325,11 @@ class _HostFactor:
         self._patterns[key] = pat
         return pat
 
-    def assemble(self, jb, js, surf_face, surf_coef, diag_add, joint_index=None, joint_coef=None):
+    def assemble(self, jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef):
         """`(pattern, data)` of `A_s` (upper CSC) from bend / stretch row Jacobians `(E, 12)` /
         `(E, 6)`, surface rows `(S, 9)` on faces `surf_face`, a diagonal addition `(3V,)` and
         joint rows (regressor vertices `(J, M)`, coefficients `√(λ w_j) c_jm` `(J, M)`)."""
-        pat = self.base if joint_index is None else self.pattern(joint_index, joint_coef)
+        pat = self.pattern(joint_index, joint_coef)
         jb, js = np.asarray(jb).reshape(-1, 12), np.asarray(js).reshape(-1, 6)
         data = np.zeros(pat.nnz)
         for j, pos in ((jb, pat.bend_pos), (js, pat.stretch_pos)):
