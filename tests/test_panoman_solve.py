@@ -225,6 +225,43 @@ def test_parameter_gram_equals_the_dense_jacobian_gram(mesh):
     np.testing.assert_allclose(G, ref, rtol=1e-10, atol=1e-10 * float(jnp.abs(G).max()))
 
 
+@pytest.mark.parametrize("bending", ["fb", "printed"])
+def test_explicit_jacobian_rows_equal_the_residuals_jacobian(mesh, bending):
+    """The per-edge gradients `_jacobian_rows` (what the factorisation and the PCG's product
+    read) equal the shell residuals' full Jacobian in the vertices, on a mesh with flat, folded
+    and fold-guarded hinges, a degenerate (zero-length) edge and a boundary, and vanish
+    outside each row's stencil."""
+    v, x, top, _ = mesh
+    # an open mesh (boundary edges) with a collapsed edge and a flattened fan
+    faces = np.asarray(top.faces)[np.asarray(top.faces).min(1) > 3]
+    used = np.unique(faces)
+    remap = np.full(v.shape[0], -1)
+    remap[used] = np.arange(used.size)
+    topo = bp.Topology.from_faces(remap[faces], used.size)
+    r, X = v[used], x[used].copy()
+    e0 = np.asarray(topo.edges)[0]
+    X[e0[1]] = X[e0[0]]  # zero-length edge
+    X[:12, 2] = 0.0  # flattened fan: flat and folded hinges
+    rla = pm.rla_encode(x[used], r, topo)
+    rla = pm.RLA(rla.lengths, rla.angles.at[:5].set(3.1))  # fold-guarded targets
+    args = (jnp.asarray(r), rla, topo, bending, 1.7, 0.1)
+    J = jax.jacfwd(lambda V: jnp.concatenate(pm._shell._residuals(V, *args)))(jnp.asarray(X))
+    lr_safe, coef, _ = pm._shell._shell_terms(*args)
+    js, jb = pm._shell._jacobian_rows(jnp.asarray(X), lr_safe, coef, topo)
+    E, nV = topo.n_edges, used.size
+    st = np.asarray(pm.prepare_shell_solver(topo).stencils)
+    ref_s = np.zeros((E, nV, 3))
+    np.add.at(ref_s, (np.arange(E)[:, None], st[:, :2]), np.asarray(js).reshape(E, 2, 3))
+    ref_b = np.zeros((E, nV, 3))
+    np.add.at(ref_b, (np.arange(E)[:, None], st), np.asarray(jb).reshape(E, 4, 3))
+    J = np.asarray(J)
+    assert np.isfinite(J).all() and np.isfinite(np.asarray(jb)).all()
+    scale = np.abs(J).max()
+    np.testing.assert_allclose(ref_s, J[:E], atol=1e-10 * scale)
+    np.testing.assert_allclose(ref_b, J[E:], atol=1e-10 * scale)
+    assert np.abs(J[E:]).max(axis=(1, 2)).min() == 0.0  # guarded / boundary hinges: zero rows
+
+
 def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh):
     """The PCG's product `JᵀJ z` built from the shell rows' explicit vertex Jacobian rows (the
     ones the colouring JVPs extract) equals the product through the whole linearised residual,

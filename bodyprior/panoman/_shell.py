@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._geometry import edge_lengths, face_areas
+from .._geometry import _hinge_angles, _hinge_stencils, _safe_norm, edge_lengths, face_areas
 from .._topology import Topology
 from .._validate import check_array
 from ._rla import RLA, _check_rla, _check_topology, fold_mask, interior_dihedral_angles, wrap_angle
@@ -90,21 +91,54 @@ def shell_residuals(
     )
 
 
-def _residuals(vertices, rest, rla, topology, bending, bending_stiffness, fold_eps):
+def _shell_terms(rest, rla, topology, bending, bending_stiffness, fold_eps):
+    """What the residuals take from the rest mesh and the targets (neither depends on the
+    deformed vertices): the safe rest lengths `(E,)`, the bending coefficients
+    `√k_b · w_e` `(E,)` (0 on boundary, zero-area and fold-guarded hinges) and the target
+    interior angles `ψ* = ψ(r) + â` `(E,)`."""
     lr = edge_lengths(rest, topology)
     tiny = jnp.finfo(lr.dtype).tiny
     lr_safe = jnp.maximum(lr, tiny)
-    stretch = edge_lengths(vertices, topology) / lr_safe - 1.0 - rla.lengths
     areas = face_areas(rest, topology.faces)
     ef = topology.edge_faces
     a_e = areas[ef[:, 0]] + jnp.where(topology.interior, areas[jnp.maximum(ef[:, 1], 0)], 0.0)
     ok = topology.interior & (a_e > 0) & ~fold_mask(rla, rest, topology, eps=fold_eps)
     a_safe = jnp.where(ok, a_e, 1.0)
     w = lr / (jnp.sqrt(a_safe) if bending == "fb" else a_safe)
+    coef = jnp.where(ok, jnp.sqrt(bending_stiffness) * w, 0.0)
     psi_target = interior_dihedral_angles(rest, topology) + rla.angles
+    return lr_safe, coef, psi_target
+
+
+def _residuals(vertices, rest, rla, topology, bending, bending_stiffness, fold_eps):
+    lr_safe, coef, psi_target = _shell_terms(
+        rest, rla, topology, bending, bending_stiffness, fold_eps
+    )
+    stretch = edge_lengths(vertices, topology) / lr_safe - 1.0 - rla.lengths
     d = wrap_angle(interior_dihedral_angles(vertices, topology) - psi_target)
-    bend = jnp.where(ok, jnp.sqrt(bending_stiffness) * w * d, 0.0)
-    return stretch, bend
+    return stretch, coef * d
+
+
+def _jacobian_rows(vertices, lr_safe, coef, topology):
+    """The explicit vertex Jacobian rows of the residuals `(s, b)` of `_residuals` (the
+    deformed vertices only; rest mesh and targets held): stretch `(E, 6)` over the edge's two
+    vertices `(i, j)`, bend `(E, 12)` over its hinge stencil `(i, j, k, l)` (as
+    `bodyprior.dihedral_angles`; coordinates fastest). Per-edge gradients of the same kernels
+    the residuals evaluate, so equal to the residuals' Jacobian to rounding: `∂s_e/∂x =
+    ∂l_e/∂x / l_e`, `∂b_e/∂x = −√k_b w_e ∂θ_e/∂x` (`ψ = π − θ`, the wrap has slope 1)."""
+    st = _hinge_stencils(topology)
+    x = vertices[st]  # (E, 4, 3)
+
+    def length(xi, xj):
+        return _safe_norm(xj - xi)
+
+    def angle(x4, interior):
+        return _hinge_angles(x4[0], x4[1], x4[2], x4[3], interior)
+
+    gi, gj = jax.vmap(jax.grad(length, argnums=(0, 1)))(x[:, 0], x[:, 1])
+    js = jnp.concatenate([gi, gj], -1) / lr_safe[:, None]
+    jb = jax.vmap(jax.grad(angle))(x, topology.interior).reshape(-1, 12) * (-coef)[:, None]
+    return js, jb
 
 
 def shell_energy(

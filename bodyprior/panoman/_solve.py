@@ -54,7 +54,7 @@ from .._solution import RESULTS, Solution, _check
 from .._topology import Topology
 from .._validate import check_array, check_positive_int, is_tracer
 from ._rla import RLA, _check_topology
-from ._shell import _BENDING, _residuals
+from ._shell import _BENDING, _jacobian_rows, _residuals, _shell_terms
 
 __all__ = ["ShellConstraints", "ShellFit", "ShellSolver", "prepare_shell_solver", "shell_solve"]
 
@@ -388,39 +388,17 @@ class _HostFactor:
             return self._slots[k][1].solve(np.asarray(r, np.float64))
 
 
-def _colouring(stencils: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Greedy distance colouring: vertices that share a hinge stencil get different colours, so
-    one JVP per colour and coordinate recovers every shell row's Jacobian (9 colours on the
-    default body)."""
-    import scipy.sparse as sps
-
-    a, b = np.broadcast_arrays(stencils[:, :, None], stencils[:, None, :])
-    g = sps.csr_matrix(
-        (np.ones(a.size, np.int8), (a.ravel(), b.ravel())), shape=(n_vertices, n_vertices)
-    )
-    colour = np.full(n_vertices, -1, np.int64)
-    order = np.argsort(-np.diff(g.indptr), kind="stable")
-    for v in order:
-        nb = colour[g.indices[g.indptr[v] : g.indptr[v + 1]]]
-        used = np.zeros(nb.size + 2, bool)
-        used[nb[(nb >= 0) & (nb < used.size)]] = True
-        colour[v] = int(np.argmin(used))
-    return colour.astype(np.int32)
-
-
 class ShellSolver(eqx.Module):
-    """What [`bodyprior.panoman.shell_solve`][] precomputes once per topology (host side, ~1 s
-    for the full body): hinge stencils, the Jacobian colouring and the sparse factorisation's
-    pattern and maps. Build with [`bodyprior.panoman.prepare_shell_solver`][]."""
+    """What [`bodyprior.panoman.shell_solve`][] precomputes once per topology (host side): hinge
+    stencils and the sparse factorisation's pattern and maps. Build with
+    [`bodyprior.panoman.prepare_shell_solver`][]."""
 
     stencils: Int[Array, "E 4"]
-    colour: Int[Array, " V"]
-    n_colours: int = eqx.field(static=True)
     host: _HostFactor = eqx.field(static=True)
 
     @property
     def n_vertices(self) -> int:
-        return int(self.colour.shape[0])
+        return int(self.host.n // 3)
 
 
 def prepare_shell_solver(topology: Topology) -> ShellSolver:
@@ -434,10 +412,9 @@ def prepare_shell_solver(topology: Topology) -> ShellSolver:
     interior = np.asarray(topology.interior)
     st = np.stack([e[:, 0], e[:, 1], opp[:, 0], np.where(interior, opp[:, 1], e[:, 0])], 1)
     V = int(topology.n_vertices)
-    colour = _colouring(st, V)
     key = (V, int(e.shape[0]), hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest())
     host = _HostFactor(st, faces, V, key)
-    return ShellSolver(jnp.asarray(st, jnp.int32), jnp.asarray(colour), int(colour.max()) + 1, host)
+    return ShellSolver(jnp.asarray(st, jnp.int32), host)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -657,15 +634,8 @@ def _solve(
         * cons.surface_normal[:, None, :]
     )  # (S, 3 vertices, 3)
 
-    nc = solver.n_colours
-    tangents = (
-        jnp.zeros((nc, 3, nV, 3)).at[solver.colour, :, jnp.arange(nV), :].set(jnp.eye(3))
-    )  # tangent (c, d): ones at colour-c vertices, coordinate d
-    tangents = tangents.reshape(3 * nc, nV, 3)
     st = solver.stencils
-    slot_idx = 3 * solver.colour[st][:, :, None] + jnp.arange(3)  # (E, 4, 3)
-    rows = jnp.arange(E)[:, None, None]
-    interior = topology.interior[:, None, None]
+    free_slot = None if free is None else free[st][:, :, None]  # (E, 4, 1)
 
     factor_shape = (
         jax.ShapeDtypeStruct((), jnp.int64),
@@ -704,14 +674,20 @@ def _solve(
         k, u, f, mu, nu, n_cg, n_acc, _, _ = state
         r, jvp = jax.linearize(resid, u)
         (g,) = jax.linear_transpose(jvp, u)(r)
-        # Coloured Jacobian columns (3 nc, 2E) of the shell rows, by JVPs in the vertices alone
-        # (through `resid`'s linearisation, every tangent would also carry its zero parameter
-        # part through the targets' component matrices).
+        # The shell rows' explicit vertex Jacobian rows (per-edge gradients; fixed vertices'
+        # slots zero, as their columns are).
         Vu, pu = split(u)
-        _, jvp_v = jax.linearize(lambda V: jnp.concatenate(parts(V, pu)[:2]), Vu)
-        cols = jax.vmap(jvp_v)(tangents)
-        jb = jnp.where(interior, cols[slot_idx, E + rows], 0.0).reshape(E, 12)
-        js = cols[slot_idx[:, :2], rows].reshape(E, 6)
+        if free is not None:
+            Vu = jnp.where(free[:, None], Vu, V0)
+        pt = unravel(pu)
+        lr_safe, coef, _ = _shell_terms(
+            rest(pt) if callable(rest) else rest, targets(pt), topology, cfg.bending,
+            cfg.bending_stiffness, cfg.fold_eps,
+        )  # fmt: skip
+        js, jb = _jacobian_rows(Vu, lr_safe, coef, topology)
+        if free is not None:
+            js = jnp.where(free_slot[:, :2], js.reshape(E, 2, 3), 0.0).reshape(E, 6)
+            jb = jnp.where(free_slot, jb.reshape(E, 4, 3), 0.0).reshape(E, 12)
         fid, dA = factor(jb, js, mu)
         dA = jnp.maximum(dA, 0.0)
         damp = mu * jnp.concatenate([dA, dGp])
