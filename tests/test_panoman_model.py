@@ -1,5 +1,6 @@
 """PanoMan model on open data: training set, model, save/load, reconstruction (tiny sizes)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -192,6 +193,56 @@ def test_local_blocks_move_only_their_region(trained):
 
 
 @needs_data
+@pytest.mark.parametrize("part", ["body", "face"])
+def test_block_targets_and_their_gram_equal_the_dense_ones(trained, part):
+    """fit_panoman's whole-mesh block targets (fixed part once, moving rows in coordinate form,
+    correction through its last layer) equal `model_targets`, and their structured Gram
+    `Jᵀ diag(w) J` equals the dense Jacobian's, with and without the correction MLP."""
+    from jax.flatten_util import ravel_pytree
+
+    from bodyprior.panoman import _fit
+
+    _, top, sol = trained
+    m = sol.value
+    solver = pm.prepare_panoman_solver(m, local=())
+    rng = np.random.default_rng(3)
+    K, s = m.n_components, m.part_slice(part)
+    bl = jnp.asarray(m.neutral_lengths + 0.3 * rng.standard_normal(K))
+    ba = jnp.asarray(m.neutral_angles + 0.3 * rng.standard_normal(K))
+    alpha = jnp.asarray(rng.standard_normal(m.shape_basis.shape[0]))
+    w = jnp.asarray(rng.uniform(0.1, 2.0, 2 * top.n_edges))
+    grams = []
+    for flag in (1.0, 0.0):
+        f = jnp.asarray(flag)
+        base = _fit._block_base(m, bl, ba, f, s.start, s.stop, part == "body")
+        tg = _fit._BlockTargets(m, alpha, base.lengths, base.angles,
+                                solver.rows[pm.PARTS.index(part)], f, part == "body", s.start)  # fmt: skip
+        params = {"bl": bl[s] + 0.1, "ba": ba[s] - 0.1}
+        if part == "body":
+            params["alpha"] = alpha
+        full_l, full_a = bl.at[s].set(params["bl"]), ba.at[s].set(params["ba"])
+        ref = pm.model_targets(m, full_l, full_a, correct=f)
+        got = tg(params)
+        np.testing.assert_allclose(got.lengths, ref.lengths, atol=1e-6)
+        np.testing.assert_allclose(got.angles, ref.angles, atol=1e-6)
+        p0, unravel = ravel_pytree(params)
+
+        def flat(p):
+            x = tg(unravel(p))
+            return jnp.concatenate([x.lengths, x.angles]).astype(jnp.float64)
+
+        J = jax.jacfwd(flat)(p0)  # (2E, P)
+        G_ref = J.T @ (w[:, None] * J)
+        G = tg.weighted_gram(params, w)
+        scale = float(jnp.abs(G_ref).max())
+        np.testing.assert_allclose(G, G_ref, atol=1e-5 * scale)
+        grams.append(G)
+    # the body block's correction Jacobian is in the Gram (with the MLP off it is not)
+    differ = float(jnp.abs(grams[0] - grams[1]).max()) > 1e-3 * float(jnp.abs(grams[0]).max())
+    assert differ == (part == "body")
+
+
+@needs_data
 @pytest.mark.bad_input
 def test_panoman_solver_bad_input(trained):
     _, top, sol = trained
@@ -203,6 +254,9 @@ def test_panoman_solver_bad_input(trained):
     cons = pm.shell_constraints(handles=(np.array([0]), np.zeros((1, 3))))
     with pytest.raises(ValueError, match="prepare_panoman_solver"):
         pm.fit_panoman(m, cons, solver=pm.prepare_shell_solver(top))
+    other = eqx.tree_at(lambda x: x.components_lengths, m, m.components_lengths * 1.5)
+    with pytest.raises(ValueError, match="another model"):
+        pm.fit_panoman(other, cons, solver=pm.prepare_panoman_solver(m, local=()))
 
 
 @needs_data

@@ -250,15 +250,62 @@ class _Region(eqx.Module):
     n_free: int = eqx.field(static=True)
 
 
+class _PartRows(eqx.Module):
+    """One part's component rows `M_L`, `M_A` `(K_part, E)` in coordinate form (row within the
+    part, edge, value of each non-zero): SPLOCS components are local (5-6 % non-zero on the
+    default body), so a block's targets and their derivatives read ~18x less than the dense
+    rows."""
+
+    rows_l: Int[Array, " nl"]
+    cols_l: Int[Array, " nl"]
+    vals_l: Array
+    rows_a: Int[Array, " na"]
+    cols_a: Int[Array, " na"]
+    vals_a: Array
+
+    def apply(self, bl, ba, n_edges: int) -> tuple[Array, Array]:
+        """`(β_L M_L, β_A M_A)` `(E,)` for part coefficients `(K_part,)` each."""
+        L = jax.ops.segment_sum(bl.astype(self.vals_l.dtype)[self.rows_l] * self.vals_l,
+                                self.cols_l, n_edges)  # fmt: skip
+        A = jax.ops.segment_sum(ba.astype(self.vals_a.dtype)[self.rows_a] * self.vals_a,
+                                self.cols_a, n_edges)  # fmt: skip
+        return L, A
+
+
+def _part_rows(model: PanoManModel, part: str) -> _PartRows:
+    s = model.part_slice(part)
+    out = []
+    for C in (model.components_lengths, model.components_angles):
+        C = np.asarray(C)[s]
+        r, c = np.nonzero(C)
+        out += [jnp.asarray(r, jnp.int32), jnp.asarray(c, jnp.int32), jnp.asarray(C[r, c])]
+    return _PartRows(*out)
+
+
+def _fingerprint(model: PanoManModel) -> str:
+    """A cheap identity of the model's component matrices (a strided sample's bytes)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for C in (model.components_lengths, model.components_angles):
+        C = np.asarray(C)
+        h.update(str(C.shape).encode())
+        h.update(np.ascontiguousarray(C[:, ::97]).tobytes())
+    return h.hexdigest()
+
+
 class PanoManSolver(eqx.Module):
     """What [`bodyprior.panoman.fit_panoman`][] precomputes once per model (host side): the
-    whole mesh's [`bodyprior.panoman.ShellSolver`][] and, for the parts solved locally, the
-    part's region (sub-mesh, fixed rings, edge and vertex maps) with its own solver. Build with
+    whole mesh's [`bodyprior.panoman.ShellSolver`][], each part's component rows in coordinate
+    form (the block targets), and, for the parts solved locally, the part's region (sub-mesh,
+    fixed rings, edge and vertex maps) with its own solver. Build with
     [`bodyprior.panoman.prepare_panoman_solver`][]."""
 
     whole: ShellSolver
     regions: tuple  # per part of PARTS: a _Region or None (that part's block moves all vertices)
+    rows: tuple  # per part of PARTS: its _PartRows
     rings: int = eqx.field(static=True)
+    fingerprint: str = eqx.field(static=True)
 
     def region(self, part: str):
         return self.regions[PARTS.index(part)]
@@ -338,7 +385,8 @@ def prepare_panoman_solver(
         _make_region(top, _part_support(model, part), int(rings)) if part in local else None
         for part in PARTS
     )
-    return PanoManSolver(prepare_shell_solver(top), regions, int(rings))
+    rows = tuple(_part_rows(model, part) for part in PARTS)
+    return PanoManSolver(prepare_shell_solver(top), regions, rows, int(rings), _fingerprint(model))
 
 
 class _LocalTargets(eqx.Module):
@@ -384,32 +432,98 @@ def _local_constraints(cons: ShellConstraints, region: _Region, V: Array) -> She
 
 
 class _BlockTargets(eqx.Module):
-    """`targets(params)` for one block: the block's β (and α for the body block) move."""
+    """`targets(params)` for one whole-mesh block: `X = X_fixed + β_m M_m (+ R(β_B))` with the
+    block's part coefficients `β_m` moving (and α for the body block, which only the rest mesh
+    reads). `X_fixed` (the mean, the other parts' rows and, outside the body block, the
+    correction of the fixed body coefficients) is evaluated once per block; the moving rows are
+    applied in coordinate form. Equal to `model_targets` to rounding (tested)."""
 
-    model: PanoManModel
+    model: PanoManModel  # its shape space (the rest mesh) and, in the body block, the MLP
     alpha: Array
-    beta_lengths: Array
-    beta_angles: Array
+    base_lengths: Array
+    base_angles: Array
+    rows: _PartRows
     correct: Array  # 1.0 with the correction MLP, 0.0 without (a leaf: one compile for both)
-    start: int = eqx.field(static=True)
-    stop: int = eqx.field(static=True)
-    with_alpha: bool = eqx.field(static=True)
-
-    def _full(self, params):
-        bl = self.beta_lengths.at[self.start : self.stop].set(params["bl"])
-        ba = self.beta_angles.at[self.start : self.stop].set(params["ba"])
-        a = params["alpha"] if self.with_alpha else self.alpha
-        return a, bl, ba
+    with_alpha: bool = eqx.field(static=True)  # the body block: α moves, the MLP reads β_m
+    start: int = eqx.field(static=True)  # the moving part's first component row
 
     def __call__(self, params) -> RLA:
-        _, bl, ba = self._full(params)
-        return model_targets(
-            self.model, bl, ba, correct=self.correct, moving=slice(self.start, self.stop)
-        )
+        E = self.base_lengths.shape[0]
+        dL, dA = self.rows.apply(params["bl"], params["ba"], E)
+        L, A = self.base_lengths + dL, self.base_angles + dA
+        m = self.model
+        if self.with_alpha and m.correction is not None:
+            x = jnp.concatenate([params["bl"], params["ba"]]).astype(jnp.float32)
+            r = m.correction(x).astype(L.dtype) * jnp.asarray(self.correct, L.dtype)
+            n = m.correction_edges.shape[0]
+            L = L.at[m.correction_edges].add(r[:n])
+            A = A.at[m.correction_edges].add(r[n:])
+        return RLA(L, A)
 
     def rest(self, params):
-        a, _, _ = self._full(params)
-        return self.model.shape(a)
+        return self.model.shape(params["alpha"] if self.with_alpha else self.alpha)
+
+    def weighted_gram(self, params, w):
+        """`Jᵀ diag(w) J` `(P, P)` over the flat parameters (`ravel_pytree` order) for the
+        targets' Jacobian `J` `(2E, P)` (lengths then angles) and weights `w` `(2E,)` (or
+        `None` where the structure below does not hold), from the
+        structure: the moving rows `M_m` (dense products `M diag(w) Mᵀ`) and, in the body
+        block, the correction's Jacobian `y_s W_lastᵀ ∂h/∂β` through its last (linear) layer
+        `W_last` `(rank, 2 E_out)` — the dense Jacobian would be `(P, 2E)` and its Gram 20.8 G
+        multiply-adds on the full body (the shell solver's `_param_gram` uses this when a
+        targets object has it)."""
+        m = self.model
+        E = self.base_lengths.shape[0]
+        K = params["bl"].shape[0]
+        wl, wa = w[:E], w[E:]
+        f64 = jnp.float64
+        sl = slice(self.start, self.start + K)
+        ML = m.components_lengths[sl].astype(f64)
+        MA = m.components_angles[sl].astype(f64)
+        Gll = (ML * wl) @ ML.T
+        Gaa = (MA * wa) @ MA.T
+        Gla = jnp.zeros((K, K), f64)
+        mlp = m.correction
+        if self.with_alpha and mlp is not None:
+            if mlp.relu[-1]:
+                return None  # no linear last layer: the solver's general path
+            x0 = jnp.concatenate([params["bl"], params["ba"]]).astype(jnp.float32)
+            Jh = jax.jacfwd(lambda x: _mlp_hidden(mlp, x))(x0).astype(f64)  # (rank, 2K)
+            Jh = Jh * jnp.asarray(mlp.y_scale, f64) * jnp.asarray(self.correct, f64)
+            ce = m.correction_edges
+            n = ce.shape[0]
+            W = mlp.weights[-1].astype(f64)  # (rank, 2n)
+            UL, UA = W[:, :n], W[:, n:]  # rank x n
+            # cross terms M diag(w) U^T (K, rank) and the correction's own U diag(w) U^T
+            CL = (ML[:, ce] * wl[ce]) @ UL.T
+            CA = (MA[:, ce] * wa[ce]) @ UA.T
+            UU = (UL * wl[ce]) @ UL.T + (UA * wa[ce]) @ UA.T
+            Jl, Ja = Jh[:, :K], Jh[:, K:]  # (rank, K) each
+            Gll = Gll + CL @ Jl + Jl.T @ CL.T + Jl.T @ UU @ Jl
+            Gaa = Gaa + CA @ Ja + Ja.T @ CA.T + Ja.T @ UU @ Ja
+            Gla = CL @ Ja + Jl.T @ CA.T + Jl.T @ UU @ Ja
+        # flat order of the parameter pytree (`ravel_pytree`: the dict's sorted keys)
+        pos, off = {}, 0
+        for k in sorted(params):
+            n = int(np.size(params[k]))
+            pos[k], off = np.arange(off, off + n), off + n
+        il, ia = pos["bl"], pos["ba"]
+        G = jnp.zeros((off, off), f64)
+        G = G.at[np.ix_(il, il)].set(Gll).at[np.ix_(ia, ia)].set(Gaa)
+        return G.at[np.ix_(il, ia)].set(Gla).at[np.ix_(ia, il)].set(Gla.T)
+
+
+def _mlp_hidden(mlp, x):
+    """The MLP's standardised output before its last (linear) layer: `h` with
+    `mlp(x) = y_mean + y_scale · (h W_last + b_last)`."""
+    h = (jnp.asarray(x, mlp.x_mean.dtype) - mlp.x_mean) / mlp.x_scale
+    for W, b, r in zip(mlp.weights[:-1], mlp.biases[:-1], mlp.relu[:-1]):
+        h = h @ W
+        if b is not None:
+            h = h + b
+        if r:
+            h = jax.nn.relu(h)
+    return h
 
 
 class _Rest(eqx.Module):
@@ -417,6 +531,16 @@ class _Rest(eqx.Module):
 
     def __call__(self, params):
         return self.targets.rest(params)
+
+
+@eqx.filter_jit
+def _block_base(model, bl, ba, flag, start: int, stop: int, body: bool) -> RLA:
+    """The fixed part of a whole-mesh block's targets: the model's targets with the moving part's
+    coefficients zeroed (and, in the body block, without the correction, which the block
+    evaluates itself)."""
+    s = slice(start, stop)
+    c = jnp.zeros_like(flag) if body else flag
+    return model_targets(model, bl.at[s].set(0.0), ba.at[s].set(0.0), correct=c)
 
 
 def fit_panoman(
@@ -498,11 +622,14 @@ def fit_panoman(
         if b not in PARTS:
             raise ValueError(f"`blocks` entries must be in {PARTS}, got {b!r}.")
     if solver is not None and not (
-        isinstance(solver, PanoManSolver) and solver.whole.n_vertices == top.n_vertices
+        isinstance(solver, PanoManSolver)
+        and solver.whole.n_vertices == top.n_vertices
+        and solver.fingerprint == _fingerprint(model)
     ):
         raise ValueError(
-            "`solver` must be prepare_panoman_solver(model) for this model, got "
-            f"{type(solver).__name__}."
+            "`solver` must be prepare_panoman_solver(model) for this model (its component rows "
+            f"and regions are the model's), got {type(solver).__name__}"
+            + (" of another model." if isinstance(solver, PanoManSolver) else ".")
         )
     if start is None:
         start = "decoded" if init_mesh is None else "mesh"
@@ -561,7 +688,10 @@ def fit_panoman(
         opts = dict(weight=weight, max_steps=max_steps, cg_rtol=cg_rtol, ftol=ftol,
                     cg_max_steps=cg_max_steps, throw=False)  # fmt: skip
         if region is None:
-            tg = _BlockTargets(model, alpha, bl, ba, flag, s.start, s.stop, part == "body")
+            body = part == "body"
+            base = _block_base(model, bl, ba, flag, s.start, s.stop, body)
+            tg = _BlockTargets(model, alpha, base.lengths, base.angles,
+                               solver.rows[PARTS.index(part)], flag, body, s.start)  # fmt: skip
             sol = shell_solve(tg, _Rest(tg), params0, V, top, cons, solver=solver.whole, **opts)
             V = sol.value.vertices
         else:  # the part's region alone (prepare_panoman_solver)
