@@ -215,8 +215,10 @@ def test_block_targets_and_their_gram_equal_the_dense_ones(trained, part):
     for flag in (1.0, 0.0):
         f = jnp.asarray(flag)
         base = _fit._block_base(m, bl, ba, f, s.start, s.stop, part == "body")
-        tg = _fit._BlockTargets(m, alpha, base.lengths, base.angles,
-                                solver.rows[pm.PARTS.index(part)], f, part == "body", s.start)  # fmt: skip
+        rows = solver.rows[pm.PARTS.index(part)]
+        tg = _fit._BlockTargets(
+            m, alpha, base.lengths, base.angles, rows, f, part == "body", s.start
+        )
         params = {"bl": bl[s] + 0.1, "ba": ba[s] - 0.1}
         if part == "body":
             params["alpha"] = alpha

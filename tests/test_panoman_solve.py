@@ -262,6 +262,36 @@ def test_explicit_jacobian_rows_equal_the_residuals_jacobian(mesh, bending):
     assert np.abs(J[E:]).max(axis=(1, 2)).min() == 0.0  # guarded / boundary hinges: zero rows
 
 
+def test_host_factor_reused_for_the_same_matrix_only(mesh):
+    """After a rejected LM step (same vertices, more damping) the host returns the live
+    factorisation of the same matrix instead of refactoring; any other matrix is factored anew,
+    and each factorisation solves its own (damped) system."""
+    v, x, top, solver = mesh
+    host = solver.host
+    E, nV = top.n_edges, v.shape[0]
+    rng = np.random.default_rng(11)
+    jb, js = rng.standard_normal((E, 12)), rng.standard_normal((E, 6))
+    none = (np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.ones(3 * nV),
+            np.zeros((0, 1), np.int64), np.zeros((0, 1)))  # fmt: skip
+    f1, d1 = host.factor(jb, js, *none, 1e-4)
+    f2, d2 = host.factor(jb, js, *none, 1e-2)  # same matrix, more damping: reused
+    f3, _ = host.factor(jb * 1.01, js, *none, 1e-4)  # another matrix: a new factorisation
+    assert f2 == f1 and f3 != f1
+    np.testing.assert_array_equal(d1, d2)
+    pat, data = host.assemble(jb, js, *none)
+    A = host.matrix(pat, data)
+    A = (A + A.T - sps_diag(A)).toarray()
+    b = rng.standard_normal(3 * nV)
+    A1 = A + np.diag(1e-4 * np.diag(A) + 1e-12 * np.diag(A).mean())
+    np.testing.assert_allclose(A1 @ host.solve(f1, b), b, atol=1e-6 * np.abs(b).max())
+
+
+def sps_diag(A):
+    import scipy.sparse as sps
+
+    return sps.diags(A.diagonal())
+
+
 def test_gauss_newton_product_from_explicit_rows_equals_the_linearised_one(mesh):
     """The PCG's product `JᵀJ z` built from the shell rows' explicit vertex Jacobian rows (the
     ones the colouring JVPs extract) equals the product through the whole linearised residual,

@@ -31,6 +31,9 @@ for a 1e-2 residual reduction on the decimated body, the factorisation 0.19 s (0
 the factorisation won.
 
 `D` is the diagonal of the preconditioned blocks (Marquardt scaling); `μ` follows Nielsen's rule.
+A step the linear model predicts to gain but that raises `E` is tried at 1/2 and 1/4 of its length
+(one batched evaluation) before it is rejected; after a rejection the factorisation of the same
+vertices (less damped) is reused as the preconditioner.
 An iteration budget ending is not a failure (`stats["converged"]` says whether the stopping test
 was met); non-finite values are (`RESULTS.nonfinite`).
 """
@@ -274,6 +277,8 @@ class _HostFactor:
         self._ids = itertools.count(0)
         self._slots: list[Any] = [None] * _POOL  # (pattern, qdldl.Solver)
         self._slot_id = [-1] * _POOL
+        self._slot_key: list[int | None] = [None] * _POOL  # hash of the inputs (not damping)
+        self._slot_diag: list[Any] = [None] * _POOL
 
     def __hash__(self):
         return hash(self.key)
@@ -359,10 +364,23 @@ class _HostFactor:
 
     def factor(self, jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef, damping):
         """Factors `A_s + damping · diag(A_s)` (plus a 1e-12 relative ridge); returns
-        `(id, diag(A_s))`."""
+        `(id, diag(A_s))`.
+
+        When `A_s` is one a live factorisation was made of (an LM iteration after a rejected
+        step: same vertices, more damping), that factorisation is returned instead: its smaller
+        damping makes it a preconditioner of the new system as good as a new one (the PCG's
+        product carries the true damping), and a refactorisation costs ~0.6 s on the full body.
+        """
         import qdldl
 
-        pat, data = self.assemble(jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef)
+        args = [np.ascontiguousarray(np.asarray(x)) for x in
+                (jb, js, surf_face, surf_coef, diag_add, joint_index, joint_coef)]  # fmt: skip
+        key = hash(b"".join(a.tobytes() for a in args))
+        with self._lock:
+            for k in range(_POOL):
+                if self._slot_key[k] == key and self._slots[k] is not None:
+                    return np.int64(self._slot_id[k]), self._slot_diag[k]
+        pat, data = self.assemble(*args)
         d = data[pat.diag_pos].copy()
         data[pat.diag_pos] += float(damping) * d + 1e-12 * max(float(d.mean()), 1e-300)
         A = self.matrix(pat, data)
@@ -375,6 +393,8 @@ class _HostFactor:
             else:
                 slot[1].update(A, upper=True)
             self._slot_id[k] = fid
+            self._slot_key[k] = key
+            self._slot_diag[k] = d
         return np.int64(fid), d
 
     def solve(self, fid, r):
