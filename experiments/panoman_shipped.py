@@ -9,7 +9,8 @@ keys; `--test-ids` × `--test-poses` frames, 4 × 2 as the results page) and mea
    the IK mesh, `--fit-steps` LM iterations per block) from C1 (the 31 `cmu_mb` joints + 10 torso
    points) and C2 (C1 + 70 face points + 42 hand keypoints), the constraint sets of
    `experiments/panoman.py`: per-vertex error against the ground truth (mean and max per frame,
-   mm), PanoMan against its own IK mesh (the LBS fit), paired differences with 95 % bootstrap
+   mm), PanoMan against its own IK mesh (the LBS fit) and against the eq. 4 baseline (the same
+   pipeline without the correction MLP, `correct=False`), paired differences with 95 % bootstrap
    intervals over frames.
 2. **Twist**: `experiments/panoman.py`'s 180° wrist-twist test on the first test identity with
    `--twist-steps` LM iterations per block: minimum forearm cross-section area ratio (goal ≥ 0.8).
@@ -112,7 +113,11 @@ def main(argv=None) -> dict:
             r = pm.reconstruct(kit, gj, (idx, gt[idx]), max_steps=cfg["fit_steps"],
                                solver=solver)  # fmt: skip
             seconds.append(time.perf_counter() - tk)
-            for name, v in (("lbs", r.stats["ik"]["vertices"]), ("panoman", r.value.vertices)):
+            # the eq. 4 baseline: the same pipeline without the correction MLP
+            rb = pm.reconstruct(kit, gj, (idx, gt[idx]), max_steps=cfg["fit_steps"],
+                                solver=solver, correct=False)  # fmt: skip
+            for name, v in (("lbs", r.stats["ik"]["vertices"]), ("panoman", r.value.vertices),
+                            ("baseline", rb.value.vertices)):  # fmt: skip
                 rec.setdefault(cs, {}).setdefault(name, []).append(exp._err_mm(v, gt))
             if cs == "c1" and not shown:
                 shown = {"truth": gt, "LBS (IK)": np.asarray(r.stats["ik"]["vertices"]),
@@ -128,6 +133,8 @@ def main(argv=None) -> dict:
             name: exp._bootstrap_ci(np.asarray(v)[:, 0], rng_ci) for name, v in rows.items()
         }
         metrics[f"recon_{cs}_ci95"]["panoman_minus_lbs"] = exp._bootstrap_ci(d, rng_ci)
+        db = np.asarray(rows["panoman"])[:, 0] - np.asarray(rows["baseline"])[:, 0]
+        metrics[f"recon_{cs}_ci95"]["panoman_minus_baseline"] = exp._bootstrap_ci(db, rng_ci)
     metrics["recon_frames"] = int(len(tb))
     # the first call compiles; the rest are warm
     metrics["reconstruct_s"] = {"first": seconds[0],

@@ -24,6 +24,8 @@ def test_panoman_shipped_quick(tmp_path):
     # held-out frames: 14.8 mm mean), and the IK mesh it starts from is in the same range
     assert 3.0 < m["recon_c1_mean_mm_panoman"] < 40.0
     assert 3.0 < m["recon_c1_mean_mm_lbs"] < 40.0
+    assert 3.0 < m["recon_c1_mean_mm_baseline"] < 40.0
+    assert "panoman_minus_baseline" in m["recon_c1_ci95"]
     mean, lo, hi = m["recon_c1_ci95"]["panoman"]
     assert lo <= mean <= hi
     assert m["twist180_min_area_ratio_ground_truth"] > 0.85

@@ -465,13 +465,12 @@ class _BlockTargets(eqx.Module):
 
     def weighted_gram(self, params, w):
         """`Jᵀ diag(w) J` `(P, P)` over the flat parameters (`ravel_pytree` order) for the
-        targets' Jacobian `J` `(2E, P)` (lengths then angles) and weights `w` `(2E,)` (or
-        `None` where the structure below does not hold), from the
-        structure: the moving rows `M_m` (dense products `M diag(w) Mᵀ`) and, in the body
-        block, the correction's Jacobian `y_s W_lastᵀ ∂h/∂β` through its last (linear) layer
-        `W_last` `(rank, 2 E_out)` — the dense Jacobian would be `(P, 2E)` and its Gram 20.8 G
-        multiply-adds on the full body (the shell solver's `_param_gram` uses this when a
-        targets object has it)."""
+        targets' Jacobian `J` `(2E, P)` (lengths then angles) and weights `w` `(2E,)`, or
+        `None` where the structure does not hold. From the structure: the moving rows `M_m`
+        (`M diag(w) Mᵀ`) and, in the body block, the correction's Jacobian
+        `y_s W_lastᵀ ∂h/∂β` through its linear last layer `W_last` `(rank, 2 E_out)`. The
+        dense Jacobian would be `(P, 2E)` and its Gram 20.8 G multiply-adds on the full body;
+        the shell solver's `_param_gram` calls this when a targets object has it."""
         m = self.model
         E = self.base_lengths.shape[0]
         K = params["bl"].shape[0]
