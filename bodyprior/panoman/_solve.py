@@ -217,6 +217,7 @@ def _check_constraints(c: ShellConstraints, n_vertices: int, n_faces: int, n_par
 
 
 _POOL = 4  # numeric factors kept alive at once (one per vmapped item of an iteration)
+_STEP_FRACTIONS = (1.0, 0.5, 0.25)  # of the Gauss-Newton step, tried longest first
 
 
 class _Pattern:
@@ -579,8 +580,6 @@ def _param_gram(targets, rest, params0, p0, V0, cons, topology, cfg, unravel):
     Jt = Jt[order]
     G = Jt @ Jt.T
     return G.at[cons.param_index, cons.param_index].add(lam * cons.param_weight)
-
-_STEP_FRACTIONS = (1.0, 0.5, 0.25)
 
 
 def _gauss_newton_product(parts, u, nV, stencils, jb, js):
